@@ -1,0 +1,998 @@
+"""Run many segmentations from one YAML file, locally or on a Dask cluster, without losing results.
+
+A batch file looks like::
+
+    output_dir: ../out/brain-sweep      # relative to this file; --out overrides it
+    defaults:                           # any `segsnake segment` option (SegmentConfig keys)
+      shape: sphere
+      m1: 9
+    cases:
+      - name: t1-n3-rf20                # optional: defaults to the image's file name
+        image: ../data/t1_n3_rf20.nii.gz
+        truth: ../data/truth.nii.gz     # optional: adds dice/jaccard/hd95_mm/assd_mm
+        scale: 1.5                      # per-case override of any option
+
+Guarantees, in the order they matter to someone running hundreds of scans:
+
+* The whole file is validated before anything runs (every case's merged options, duplicate names);
+  errors point at ``FILE:LINE:COL``. A missing or corrupt image is *not* a validation error: it is
+  that case's failure, recorded, and the rest go on.
+* Each case runs in its own process (one fresh process per case), so a crash, a segfault or the
+  out-of-memory killer in one case takes only that case down.
+* ``results.jsonl`` (the source of truth) and ``results.csv`` in the output directory get one
+  record per finished case, appended, flushed and fsynced immediately: a killed run loses only
+  the cases still running.
+* ``--resume`` keeps the cases already recorded ``ok``, runs every other case again (failed ones
+  included: a failure may have been transient, and a deterministic one fails again quickly), and
+  rewrites both files first so that each case appears exactly once.
+* ``--scheduler ADDRESS`` sends the same case function to an existing ``dask.distributed``
+  cluster instead of the local process pool.
+
+Each case's outputs go to ``output_dir/<case name>/``. The function that runs one case is
+:func:`run_case` (which calls :func:`segsnake.pipeline.segment_file`); another can be named with
+``runner="package.module:function"`` or ``"/path/to/file.py:function"``: it receives the case dict
+(``name``, ``image``, ``truth``, ``out_dir``, ``config``, ``overwrite``) and returns a JSON-able
+summary dict.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import ctypes
+import dataclasses
+import datetime as _dt
+import hashlib
+import importlib
+import importlib.util
+import io
+import json
+import math
+import multiprocessing as mp
+import multiprocessing.connection
+import os
+import re
+import signal
+import socket
+import sys
+import tempfile
+import time
+import traceback
+from collections import deque
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+from segsnake.config import (
+    LineDict,
+    LineList,
+    SegmentConfig,
+    load_yaml,
+    locate,
+    resolve_paths,
+    suggest,
+)
+from segsnake.errors import ConfigError, InputError, OutputError, SegsnakeError
+
+__all__ = [
+    "BatchCase",
+    "BatchSpec",
+    "BatchReport",
+    "load_batch",
+    "run_batch",
+    "run_case",
+    "execute_case",
+    "read_results",
+    "RESULT_COLUMNS",
+    "DEFAULT_RUNNER",
+]
+
+DEFAULT_RUNNER = "segsnake.batch:run_case"
+RESULTS_JSONL = "results.jsonl"
+RESULTS_CSV = "results.csv"
+LOCK_NAME = ".segsnake-batch.lock"
+
+TOP_KEYS = ("output_dir", "defaults", "cases")
+CASE_KEYS = ("name", "image", "truth")
+METRIC_KEYS = ("dice", "jaccard", "hd95_mm", "assd_mm")
+RESULT_COLUMNS = (
+    "case", "status", *METRIC_KEYS, "iterations", "energy", "time_s", "exit_code", "error_type",
+    "error", "image", "truth", "out_dir", "host", "finished", "timings",
+)
+# A case name becomes a directory name: one safe path component.
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,127}$")
+_MAX_ERROR_CHARS = 500
+
+
+# --------------------------------------------------------------------------------------------------
+# The batch file
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchCase:
+    """One validated case: absolute paths and the fully merged options."""
+
+    name: str
+    image: str
+    truth: str | None
+    config: SegmentConfig
+    line: int | None = None
+
+    def to_job(self, output_dir: str | os.PathLike[str], *, overwrite: bool = False) -> dict[str, Any]:
+        """The picklable dict a runner receives."""
+        return {
+            "name": self.name,
+            "image": self.image,
+            "truth": self.truth,
+            "out_dir": str(Path(output_dir) / self.name),
+            "config": self.config.to_dict(),
+            "overwrite": bool(overwrite),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchSpec:
+    """A validated batch file."""
+
+    path: str
+    output_dir: str
+    cases: tuple[BatchCase, ...]
+
+
+def _stem(path: str) -> str:
+    name = Path(path).name
+    for suffix in (".nii.gz", ".nii", ".gz", ".mha", ".mhd", ".nrrd"):
+        if name.lower().endswith(suffix):
+            return name[: -len(suffix)]
+    return Path(name).stem or name
+
+
+def _normalise_keys(d: LineDict) -> LineDict:
+    """Copy of ``d`` with ``-`` read as ``_`` in keys, keeping positions (``max-iter`` = ``max_iter``)."""
+    out = LineDict()
+    out.mark = d.mark
+    for key, value in d.items():
+        k = key.replace("-", "_") if isinstance(key, str) else key
+        out[k] = value
+        out.key_marks[k] = d.key_marks.get(key, d.mark)  # type: ignore[assignment]
+    return out
+
+
+def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[str] | None = None
+               ) -> BatchSpec:
+    """Read and validate a batch YAML file completely, before anything runs.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The batch file. Relative paths inside it are relative to its directory.
+    output_dir : str or path-like, optional
+        Overrides the file's ``output_dir`` (relative to the current directory). Without either,
+        results go to ``<file stem>-results`` beside the file.
+
+    Returns
+    -------
+    BatchSpec
+
+    Raises
+    ------
+    ConfigError
+        Syntax error, unknown key (with a suggestion), wrong type or range, duplicate case name,
+        no cases. The message names ``FILE:LINE:COL`` of the first problem and counts the others.
+    """
+    p = Path(path)
+    src = str(p)
+    data = load_yaml(p)
+    base = p.resolve().parent
+    errors: list[str] = []
+
+    if data is None:
+        raise ConfigError(f"{src}: empty batch file (expected 'cases:' and optionally 'defaults:', "
+                          "'output_dir:')")
+    if not isinstance(data, LineDict):
+        raise ConfigError(f"{locate(src, data)}: a batch file must be a mapping with 'cases:', "
+                          "'defaults:' and 'output_dir:'")
+    for key in data:
+        if key not in TOP_KEYS:
+            errors.append(f"{locate(src, data, key)}: unknown key {key!r}{suggest(key, TOP_KEYS)} "
+                          f"(a batch file has {', '.join(TOP_KEYS)})")
+
+    # output_dir
+    out: Path
+    if output_dir is not None:
+        out = Path(output_dir).expanduser().resolve()
+    elif data.get("output_dir") is not None:
+        value = data["output_dir"]
+        if not isinstance(value, str) or not value:
+            errors.append(f"{locate(src, data, 'output_dir')}: output_dir: must be a directory path")
+            out = base / f"{_stem(src)}-results"
+        else:
+            out = (base / Path(value).expanduser()).resolve()
+    else:
+        out = base / f"{_stem(src)}-results"
+
+    # defaults
+    defaults = data.get("defaults")
+    if defaults is None:
+        defaults = LineDict()
+    elif not isinstance(defaults, LineDict):
+        errors.append(f"{locate(src, data, 'defaults')}: defaults: must be a mapping of "
+                      "segment options")
+        defaults = LineDict()
+    else:
+        defaults = _normalise_keys(defaults)
+        for key in list(defaults):
+            if key in CASE_KEYS:
+                errors.append(f"{locate(src, defaults, key)}: {key!r} belongs to a case, "
+                              "not to defaults")
+                del defaults[key]
+        try:  # on its own first, so an error there is reported once, at its line
+            SegmentConfig.from_mapping(defaults, source=src)
+        except ConfigError as exc:
+            errors.append(str(exc))
+            defaults = LineDict()
+
+    # cases
+    cases_raw = data.get("cases")
+    cases: list[BatchCase] = []
+    if cases_raw is None or (isinstance(cases_raw, list) and not cases_raw):
+        errors.append(f"{locate(src, data, 'cases') if 'cases' in data else src}: "
+                      "no cases: add a 'cases:' list")
+        cases_raw = []
+    elif not isinstance(cases_raw, LineList):
+        errors.append(f"{locate(src, data, 'cases')}: cases: must be a list ('- image: ...' items)")
+        cases_raw = []
+
+    first_line: dict[str, str] = {}
+    valid_case_keys = CASE_KEYS + SegmentConfig.keys()
+    for index, raw in enumerate(cases_raw):
+        where_case = locate(src, cases_raw, index)
+        if not isinstance(raw, LineDict):
+            errors.append(f"{where_case}: case {index + 1}: must be a mapping with at least 'image:'")
+            continue
+        raw = _normalise_keys(raw)
+        bad = False
+        for key in raw:
+            if key not in valid_case_keys:
+                errors.append(f"{locate(src, raw, key)}: unknown option {key!r}"
+                              f"{suggest(key, valid_case_keys)}")
+                bad = True
+        image = raw.get("image")
+        if not isinstance(image, str) or not image:
+            where = locate(src, raw, "image") if "image" in raw else where_case
+            errors.append(f"{where}: case {index + 1}: 'image:' must be a file path")
+            bad = True
+        truth = raw.get("truth")
+        if truth is not None and (not isinstance(truth, str) or not truth):
+            errors.append(f"{locate(src, raw, 'truth')}: truth: must be a file path or null")
+            bad = True
+        name = raw.get("name")
+        if name is None and isinstance(image, str) and image:
+            name = _stem(image)
+            where_name = locate(src, raw, "image")
+        else:
+            where_name = locate(src, raw, "name")
+        if isinstance(name, (int, float)) and not isinstance(name, bool):
+            name = str(name)
+        if not isinstance(name, str) or not _NAME_RE.match(name):
+            if name is not None or not bad:
+                errors.append(f"{where_name}: case name {name!r}: must be 1-128 letters, digits, "
+                              "'.', '_', '+' or '-' (it becomes a directory name)")
+            bad = True
+        elif name in first_line:
+            errors.append(f"{where_name}: duplicate case name {name!r} (first at {first_line[name]})")
+            bad = True
+        else:
+            first_line[name] = where_name.rsplit(":", 2)[-2] and f"line {where_name.rsplit(':', 2)[-2]}"
+        # Merge: defaults first, then the case's own options; positions come along so an error
+        # names the line the offending value was written on.
+        merged = LineDict()
+        merged.mark = raw.mark
+        for source_map in (defaults, raw):
+            for key, value in source_map.items():
+                if key in CASE_KEYS or key not in SegmentConfig.keys():
+                    continue
+                merged[key] = value
+                merged.key_marks[key] = source_map.key_marks.get(key, source_map.mark)
+        try:
+            config = SegmentConfig.from_mapping(merged, source=src)
+        except ConfigError as exc:
+            errors.append(str(exc))
+            continue
+        if bad:
+            continue
+        config = dataclasses.replace(config, **resolve_paths({"prior": config.prior}, base)) \
+            if config.prior else config
+        cases.append(BatchCase(
+            name=name,
+            image=str(base / Path(image).expanduser()),
+            truth=str(base / Path(truth).expanduser()) if truth else None,
+            config=config,
+            line=raw.mark[0] if raw.mark else None,
+        ))
+
+    if errors:
+        # One line: the first problem, and how many more there are.
+        unique = list(dict.fromkeys(errors))
+        more = f" (and {len(unique) - 1} more problem{'s' if len(unique) > 2 else ''})" \
+            if len(unique) > 1 else ""
+        raise ConfigError(unique[0] + more)
+    return BatchSpec(path=str(p.resolve()), output_dir=str(out), cases=tuple(cases))
+
+
+# --------------------------------------------------------------------------------------------------
+# Running one case (in its own process, or on a Dask worker)
+# --------------------------------------------------------------------------------------------------
+
+
+def run_case(case: dict[str, Any]) -> dict[str, Any]:
+    """The default runner: segment one case with :func:`segsnake.pipeline.segment_file`.
+
+    Parameters
+    ----------
+    case : dict
+        ``name``, ``image``, ``truth`` (or None), ``out_dir``, ``config`` (a
+        :meth:`SegmentConfig.to_dict`), ``overwrite``.
+
+    Returns
+    -------
+    dict
+        The pipeline's JSON-able summary.
+    """
+    from segsnake.pipeline import segment_file  # lazily: a light import for the parent process
+
+    config = SegmentConfig.from_mapping(case["config"], source=f"case {case['name']}")
+    return segment_file(case["image"], case["out_dir"], config, truth_path=case.get("truth"),
+                        overwrite=bool(case.get("overwrite", False)))
+
+
+def resolve_runner(spec: str | Callable[..., Any]) -> Callable[[dict[str, Any]], dict[str, Any]]:
+    """Import a runner named ``"package.module:function"`` or ``"/path/file.py:function"``."""
+    if callable(spec):
+        return spec  # type: ignore[return-value]
+    if not isinstance(spec, str) or ":" not in spec:
+        raise ConfigError(f"runner {spec!r}: expected 'module:function' or 'file.py:function'")
+    module_name, _, func_name = spec.rpartition(":")
+    if module_name.endswith(".py") or os.sep in module_name:
+        path = os.path.abspath(module_name)
+        # A stable private module name per file, so the module is imported once per process.
+        private = "_segsnake_runner_" + hashlib.sha1(path.encode()).hexdigest()[:12]
+        module = sys.modules.get(private)
+        if module is None:
+            if not os.path.isfile(path):
+                raise ConfigError(f"runner {spec!r}: file not found: {path}")
+            file_spec = importlib.util.spec_from_file_location(private, path)
+            if file_spec is None or file_spec.loader is None:
+                raise ConfigError(f"runner {spec!r}: cannot import {path}")
+            module = importlib.util.module_from_spec(file_spec)
+            sys.modules[private] = module
+            try:
+                file_spec.loader.exec_module(module)
+            except BaseException:
+                sys.modules.pop(private, None)
+                raise
+    else:
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError as exc:
+            raise ConfigError(f"runner {spec!r}: cannot import {module_name}: {exc}") from None
+    func = getattr(module, func_name, None)
+    if not callable(func):
+        raise ConfigError(f"runner {spec!r}: {module_name} has no function {func_name!r}")
+    return func
+
+
+def _runner_spec(runner: str | Callable[..., Any] | None) -> str:
+    """A string that names the runner in any process (functions are named by module:qualname)."""
+    if runner is None:
+        return DEFAULT_RUNNER
+    if isinstance(runner, str):
+        return runner
+    module = getattr(runner, "__module__", None)
+    qualname = getattr(runner, "__qualname__", "")
+    if not module or "<" in qualname or "." in qualname:
+        raise ConfigError(f"runner {runner!r} must be a top-level function (importable by name)")
+    if module == "__main__":
+        path = getattr(sys.modules["__main__"], "__file__", None)
+        if not path:
+            raise ConfigError("a runner defined in an interactive __main__ cannot be imported by "
+                              "worker processes; put it in a module")
+        return f"{os.path.abspath(path)}:{qualname}"
+    return f"{module}:{qualname}"
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _one_line(text: str) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= _MAX_ERROR_CHARS else text[: _MAX_ERROR_CHARS - 3] + "..."
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON values; non-finite floats become None (strict JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if hasattr(value, "item") and callable(value.item):  # numpy scalars
+        try:
+            return _jsonable(value.item())
+        except Exception:  # noqa: BLE001 - an array that is not a scalar: fall through
+            pass
+    if hasattr(value, "tolist"):
+        return _jsonable(value.tolist())
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return str(value)
+
+
+def _base_record(case: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "case": case["name"],
+        "status": None,
+        "image": case.get("image"),
+        "truth": case.get("truth"),
+        "out_dir": case.get("out_dir"),
+        "host": socket.gethostname(),
+    }
+
+
+def failure_record(case: dict[str, Any], exc: BaseException | str, *, time_s: float | None = None,
+                   exit_code: int | None = None, error_type: str | None = None) -> dict[str, Any]:
+    """The result record of a failed case: message (one line), error type and its exit code."""
+    record = _base_record(case)
+    if isinstance(exc, BaseException):
+        message = str(exc) or type(exc).__name__
+        if isinstance(exc, MemoryError):
+            message = f"out of memory {message}".strip() if str(exc) else "out of memory"
+        etype = type(exc).__name__
+        code = exc.exit_code if isinstance(exc, SegsnakeError) else (3 if isinstance(exc, MemoryError) else 1)
+        if not isinstance(exc, SegsnakeError) and not isinstance(exc, MemoryError):
+            # An unexpected exception: say what and where, in one line (the traceback's last frame).
+            tb = traceback.extract_tb(exc.__traceback__)
+            where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+            message = f"{etype}: {message}{where}"
+    else:
+        message, etype, code = str(exc), "Error", 1
+    record.update(
+        status="failed",
+        error=_one_line(message),
+        error_type=error_type or etype,
+        exit_code=exit_code if exit_code is not None else code,
+        time_s=None if time_s is None else round(time_s, 3),
+        finished=_now(),
+    )
+    return record
+
+
+def _ok_record(case: dict[str, Any], summary: Any, time_s: float) -> dict[str, Any]:
+    record = _base_record(case)
+    summary = _jsonable(summary) if summary is not None else {}
+    if not isinstance(summary, dict):
+        summary = {"result": summary}
+    record.update(status="ok", error=None, error_type=None, exit_code=0)
+    for key in (*METRIC_KEYS, "iterations", "energy"):
+        if key in summary:
+            record[key] = summary[key]
+    record["time_s"] = round(time_s, 3)
+    if isinstance(summary.get("timings"), dict):
+        record["timings"] = summary["timings"]
+    if "outputs" in summary:
+        record["outputs"] = summary["outputs"]
+    record["summary"] = summary
+    record["finished"] = _now()
+    return record
+
+
+def execute_case(runner: str, case: dict[str, Any], sys_path: list[str] | None = None
+                 ) -> dict[str, Any]:
+    """Run one case and return its result record; never raises (a failure is a record).
+
+    This is the function that crosses process boundaries (process pool child, Dask worker), so it
+    takes only picklable arguments: the runner's import name, the case dict and, optionally, the
+    parent's ``sys.path`` (appended where missing so a runner found by the parent is found here).
+    """
+    start = time.perf_counter()
+    try:
+        if sys_path:
+            for entry in sys_path:
+                if entry not in sys.path:
+                    sys.path.append(entry)
+        # Checked here (not at validation): a missing file is this case's failure, not the batch's.
+        for role in ("image", "truth"):
+            path = case.get(role)
+            if path is not None and not os.path.exists(path):
+                raise InputError(f"{path}: {role} file not found")
+            if path is not None and os.path.isdir(path) and not path.endswith(".dcm"):
+                # A directory could be a DICOM series for some runner; only refuse plain dirs
+                # when the default runner (NIfTI) is used.
+                if runner == DEFAULT_RUNNER:
+                    raise InputError(f"{path}: {role} is a directory, not an image file")
+        if case.get("out_dir"):
+            try:
+                os.makedirs(case["out_dir"], exist_ok=True)
+            except OSError as exc:
+                raise OutputError(f"{case['out_dir']}: cannot create the case directory: "
+                                  f"{exc.strerror or exc}") from None
+        func = resolve_runner(runner)
+        summary = func(case)
+        return _ok_record(case, summary, time.perf_counter() - start)
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - every failure becomes a record
+        if isinstance(exc, SystemExit):
+            exc = RuntimeError(f"the case called exit({exc.code})")
+        return failure_record(case, exc, time_s=time.perf_counter() - start)
+
+
+def _die_with_parent() -> None:
+    """Linux: get SIGKILL when the parent goes (so a killed batch leaves no orphan cases running)."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        parent = os.getppid()
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the parent died before prctl took effect
+            os._exit(1)
+    except (OSError, AttributeError):  # best effort only
+        pass
+
+
+def _child_main(runner: str, case: dict[str, Any], sys_path: list[str],
+                conn: multiprocessing.connection.Connection) -> None:
+    """Entry point of the one process that runs one case."""
+    _die_with_parent()
+    record = execute_case(runner, case, sys_path)
+    with contextlib.suppress(Exception):
+        conn.send(record)
+    with contextlib.suppress(Exception):
+        conn.close()
+
+
+# --------------------------------------------------------------------------------------------------
+# Results files
+# --------------------------------------------------------------------------------------------------
+
+
+def read_results(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
+    """Records of a ``results.jsonl``, skipping a line a killed run left half-written."""
+    records = []
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                line = line.strip()
+                if not line:
+                    continue
+                try:
+                    record = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                if isinstance(record, dict) and isinstance(record.get("case"), str):
+                    records.append(record)
+    except FileNotFoundError:
+        return []
+    return records
+
+
+def _csv_row(record: dict[str, Any]) -> list[str]:
+    row = []
+    for col in RESULT_COLUMNS:
+        value = record.get(col)
+        if value is None:
+            row.append("")
+        elif isinstance(value, (dict, list)):
+            row.append(json.dumps(value, sort_keys=True, separators=(",", ":")))
+        elif isinstance(value, float):
+            row.append(repr(value))
+        else:
+            row.append(str(value))
+    return row
+
+
+def _fsync_dir(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(path.parent)
+
+
+class ResultsWriter:
+    """Appends one record per finished case to ``results.jsonl`` and ``results.csv``, durably.
+
+    The JSON-lines file is written first and is the source of truth; the CSV is the spreadsheet
+    view, regenerated from it on ``--resume``.
+    """
+
+    def __init__(self, out_dir: str | os.PathLike[str]) -> None:
+        self.dir = Path(out_dir)
+        self.jsonl = self.dir / RESULTS_JSONL
+        self.csv = self.dir / RESULTS_CSV
+        self._jfh: io.TextIOWrapper | None = None
+        self._cfh: io.TextIOWrapper | None = None
+
+    def reset(self, records: Iterable[dict[str, Any]]) -> None:
+        """Replace both files (atomically) with ``records``."""
+        records = list(records)
+        lines = "".join(json.dumps(r, sort_keys=True, allow_nan=False) + "\n" for r in records)
+        buf = io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(RESULT_COLUMNS)
+        for r in records:
+            writer.writerow(_csv_row(r))
+        _write_atomic(self.jsonl, lines)
+        _write_atomic(self.csv, buf.getvalue())
+
+    def open(self) -> None:
+        """Open both files for appending (a header goes into a new or empty CSV)."""
+        self._jfh = open(self.jsonl, "a", encoding="utf-8")
+        self._cfh = open(self.csv, "a", encoding="utf-8", newline="")
+        if self._cfh.tell() == 0:
+            csv.writer(self._cfh, lineterminator="\n").writerow(RESULT_COLUMNS)
+            self._sync(self._cfh)
+        _fsync_dir(self.dir)
+
+    @staticmethod
+    def _sync(fh: io.TextIOWrapper) -> None:
+        fh.flush()
+        os.fsync(fh.fileno())
+
+    def append(self, record: dict[str, Any]) -> None:
+        """Write one record to both files and push it to the disk before returning."""
+        if self._jfh is None or self._cfh is None:
+            self.open()
+        assert self._jfh is not None and self._cfh is not None
+        try:
+            self._jfh.write(json.dumps(record, sort_keys=True, allow_nan=False) + "\n")
+            self._sync(self._jfh)
+            csv.writer(self._cfh, lineterminator="\n").writerow(_csv_row(record))
+            self._sync(self._cfh)
+        except OSError as exc:
+            raise OutputError(f"{self.dir}: cannot write results: {exc.strerror or exc}") from None
+
+    def close(self) -> None:
+        for fh in (self._jfh, self._cfh):
+            if fh is not None:
+                with contextlib.suppress(OSError):
+                    fh.close()
+        self._jfh = self._cfh = None
+
+
+@contextlib.contextmanager
+def _locked(out_dir: Path) -> Iterator[None]:
+    """Refuse a second batch writing the same output directory at the same time."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        yield
+        return
+    fd = os.open(out_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise OutputError(f"{out_dir}: another segsnake batch is writing here right now") from None
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock (and the kernel releases it if we are killed)
+
+
+# --------------------------------------------------------------------------------------------------
+# Executors
+# --------------------------------------------------------------------------------------------------
+
+
+def _mp_context() -> mp.context.BaseContext:
+    """``forkserver`` where available: a clean, thread-safe fork of a small server that has the
+    heavy modules preloaded (each case then starts in milliseconds); ``spawn`` otherwise."""
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        # Only effective before the server starts; modules that fail to import are skipped.
+        ctx.set_forkserver_preload(["numpy", "scipy.ndimage", "nibabel", "segsnake.config",
+                                    "segsnake.batch", "segsnake.pipeline"])
+        return ctx
+    return mp.get_context("spawn")
+
+
+@dataclasses.dataclass
+class _Running:
+    proc: Any
+    conn: multiprocessing.connection.Connection
+    case: dict[str, Any]
+    started: float
+    record: dict[str, Any] | None = None
+    conn_open: bool = True
+
+
+def _describe_exit(code: int | None) -> str:
+    if code is None:
+        return "did not exit"
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        hint = " (out of memory?)" if -code == signal.SIGKILL else ""
+        return f"was killed by {name}{hint}"
+    return f"exited with code {code}"
+
+
+def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: float | None,
+               on_record: Callable[[dict[str, Any]], None]) -> None:
+    """One fresh process per case, at most ``workers`` at a time."""
+    ctx = _mp_context()
+    pending = deque(jobs)
+    running: list[_Running] = []
+    sys_path = list(sys.path)
+    try:
+        while pending or running:
+            while pending and len(running) < workers:
+                job = pending.popleft()
+                recv, send = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_child_main, args=(runner, job, sys_path, send),
+                                   name=f"segsnake-case-{job['name']}")
+                proc.start()
+                send.close()  # the child holds the only write end: EOF means it is gone
+                running.append(_Running(proc, recv, job, time.monotonic()))
+            waitables: list[Any] = []
+            for r in running:
+                waitables.append(r.proc.sentinel)
+                if r.conn_open:
+                    waitables.append(r.conn)
+            wait_s = None
+            if timeout is not None:
+                now = time.monotonic()
+                wait_s = max(0.0, min(r.started + timeout - now for r in running))
+            ready = set(multiprocessing.connection.wait(waitables, timeout=wait_s))
+            still: list[_Running] = []
+            for r in running:
+                if r.conn_open and r.conn in ready:
+                    try:
+                        r.record = r.conn.recv()
+                    except (EOFError, OSError):
+                        pass
+                    r.conn_open = False
+                elapsed = time.monotonic() - r.started
+                if r.proc.sentinel in ready:
+                    r.proc.join()
+                    if r.record is None and r.conn_open:
+                        with contextlib.suppress(EOFError, OSError):
+                            if r.conn.poll():
+                                r.record = r.conn.recv()
+                    if r.record is None:
+                        r.record = failure_record(
+                            r.case, f"case process {_describe_exit(r.proc.exitcode)}",
+                            time_s=elapsed, error_type="CaseCrash", exit_code=1)
+                elif timeout is not None and elapsed >= timeout and r.record is None:
+                    r.proc.kill()
+                    r.proc.join()
+                    r.record = failure_record(r.case, f"timed out after {timeout:g} s",
+                                              time_s=elapsed, error_type="CaseTimeout", exit_code=1)
+                else:
+                    still.append(r)
+                    continue
+                with contextlib.suppress(OSError):
+                    r.conn.close()
+                on_record(r.record)
+            running = still
+    finally:
+        # Interrupted (Ctrl-C) or failing to write results: take the running cases down with us.
+        for r in running:
+            with contextlib.suppress(Exception):
+                r.proc.kill()
+                r.proc.join(5)
+
+
+def _run_dask(jobs: list[dict[str, Any]], runner: str, address: str, timeout: float | None,
+              on_record: Callable[[dict[str, Any]], None]) -> None:
+    """The same :func:`execute_case` on an existing ``dask.distributed`` cluster."""
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise ConfigError("--scheduler needs dask.distributed: pip install 'segsnake[dask]'") from None
+    try:
+        client = Client(address, timeout="20s", set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise ConfigError(f"cannot connect to the Dask scheduler at {address}: {_one_line(exc)}") from None
+    try:
+        sys_path = list(sys.path)
+        futures = {}
+        for job in jobs:
+            fut = client.submit(execute_case, runner, job, sys_path, pure=False,
+                                key=f"segsnake-case-{job['name']}-{os.urandom(4).hex()}")
+            futures[fut] = job
+        for fut in as_completed(list(futures), timeout=None):
+            job = futures[fut]
+            try:
+                record = fut.result(timeout=timeout)
+            except Exception as exc:  # noqa: BLE001 - a lost worker (KilledWorker), cancelled...
+                record = failure_record(job, exc, error_type=type(exc).__name__, exit_code=1)
+            on_record(record)
+    finally:
+        with contextlib.suppress(Exception):
+            client.close()
+
+
+# --------------------------------------------------------------------------------------------------
+# The batch
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class BatchReport:
+    """What a batch run did: counts, failed case names, where the results are."""
+
+    total: int
+    ok: int
+    failed: int
+    skipped: int
+    failed_cases: list[str]
+    output_dir: str
+    results_csv: str
+    results_jsonl: str
+
+    @property
+    def all_ok(self) -> bool:
+        return self.failed == 0
+
+
+def _previous(records: list[dict[str, Any]], names: set[str]) -> tuple[list[dict[str, Any]], set[str]]:
+    """Records to keep on resume (one per case) and the names of cases already done."""
+    last_ok: dict[str, dict[str, Any]] = {}
+    last_any: dict[str, dict[str, Any]] = {}
+    for r in records:
+        last_any[r["case"]] = r
+        if r.get("status") == "ok":
+            last_ok[r["case"]] = r
+    keep: dict[str, dict[str, Any]] = {}
+    for r in records:  # first-seen order
+        name = r["case"]
+        if name in keep:
+            continue
+        if name in last_ok:
+            keep[name] = last_ok[name]
+        elif name not in names:
+            keep[name] = last_any[name]  # a case no longer in the file: keep its record, untouched
+    done = {n for n in last_ok if n in names}
+    return list(keep.values()), done
+
+
+def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None = None,
+              scheduler: str | None = None, resume: bool = False, overwrite: bool = False,
+              runner: str | Callable[..., Any] | None = None, case_timeout: float | None = None,
+              quiet: bool = True, progress_stream: Any = None) -> BatchReport:
+    """Run every case of a batch and record each result as it finishes.
+
+    Parameters
+    ----------
+    spec : BatchSpec or path
+        A validated spec (:func:`load_batch`) or the YAML file to validate.
+    workers : int, optional
+        Cases running at once in the local pool (default: CPU count, at most the number of cases).
+    scheduler : str, optional
+        Address of a running ``dask.distributed`` scheduler; replaces the local pool.
+    resume : bool
+        Keep cases already recorded ``ok``; run all others (failed ones again).
+    overwrite : bool
+        Start over when results exist, and let cases replace their earlier outputs.
+    runner : str or function, optional
+        The case function (default :func:`run_case`), as ``"module:function"``,
+        ``"/path/file.py:function"`` or a top-level function.
+    case_timeout : float, optional
+        Seconds after which a case is stopped and recorded as failed (local pool: killed).
+    quiet : bool
+        No progress display.
+    progress_stream : text stream, optional
+        Where progress goes (default stderr).
+
+    Returns
+    -------
+    BatchReport
+
+    Raises
+    ------
+    ConfigError
+        Invalid batch file, bad worker count or runner, unreachable scheduler.
+    OutputError
+        Output directory not writable, results present without ``resume``/``overwrite``,
+        another batch writing the same directory.
+    """
+    from segsnake.progress import ProgressBar
+
+    if not isinstance(spec, BatchSpec):
+        spec = load_batch(spec)
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
+    if case_timeout is not None and not case_timeout > 0:
+        raise ConfigError(f"--case-timeout must be > 0 seconds, got {case_timeout!r}")
+    runner_name = _runner_spec(runner)
+    if runner_name != DEFAULT_RUNNER and scheduler is None:
+        resolve_runner(runner_name)  # fail now, once, rather than once per case
+
+    out = Path(spec.output_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise OutputError(f"{out}: output_dir exists and is not a directory") from None
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create output_dir: {exc.strerror or exc}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise OutputError(f"{out}: output_dir is not writable")
+
+    names = {c.name for c in spec.cases}
+    writer = ResultsWriter(out)
+    with _locked(out):
+        existing = [p for p in (writer.jsonl, writer.csv) if p.exists() and p.stat().st_size > 0]
+        done: set[str] = set()
+        if resume:
+            kept, done = _previous(read_results(writer.jsonl), names)
+            writer.reset(kept)  # each case once: failed/partial records of re-run cases go
+        elif existing and not overwrite:
+            raise OutputError(f"{existing[0]} already exists: use --resume to continue that run "
+                              "or --overwrite to start again")
+        else:
+            writer.reset([])
+
+        todo = [c for c in spec.cases if c.name not in done]
+        # Re-run cases may have complete outputs from a run killed before it recorded them.
+        jobs = [c.to_job(out, overwrite=overwrite or resume) for c in todo]
+        n_workers = workers or max(1, min(len(jobs), os.cpu_count() or 1))
+        failed: list[str] = []
+        counts = {"ok": 0}
+        bar = ProgressBar(len(spec.cases), label="cases", initial=len(done), quiet=quiet,
+                          stream=progress_stream)
+
+        def on_record(record: dict[str, Any]) -> None:
+            record = _jsonable(record)
+            writer.append(record)
+            if record.get("status") == "ok":
+                counts["ok"] += 1
+                note = f"{record['case']} ok"
+                if record.get("dice") is not None:
+                    note += f" dice {record['dice']:.4f}"
+                bar.update(1, note)
+            else:
+                failed.append(record["case"])
+                bar.update(1, f"{record['case']} FAILED")
+                if bar.mode == "bar":
+                    bar.message(f"{record['case']}: {record.get('error')}")
+
+        writer.open()
+        try:
+            if jobs:
+                if scheduler:
+                    _run_dask(jobs, runner_name, scheduler, case_timeout, on_record)
+                else:
+                    _run_local(jobs, runner_name, n_workers, case_timeout, on_record)
+        finally:
+            writer.close()
+            bar.close()
+
+    return BatchReport(
+        total=len(spec.cases), ok=counts["ok"] + len(done), failed=len(failed), skipped=len(done),
+        failed_cases=failed, output_dir=str(out), results_csv=str(writer.csv),
+        results_jsonl=str(writer.jsonl),
+    )

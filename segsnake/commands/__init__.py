@@ -1,0 +1,1 @@
+"""Sub-commands of the ``segsnake`` CLI; each module has ``add_parser`` and sets ``func``."""

@@ -1,0 +1,490 @@
+"""Options of ``segsnake segment`` as one validated dataclass, and YAML loading with line numbers.
+
+:class:`SegmentConfig` is the single description of a segmentation run: the ``segment`` command builds
+it from flags (optionally on top of ``--config FILE.yaml``), and ``segsnake batch`` builds one per case
+from ``defaults:`` merged with the case's overrides. Precedence is always
+command-line flag > YAML value > dataclass default.
+
+YAML is read with a small loader that remembers where every key sits, so a validation error names the
+file, line and column of the offending key (``runs.yaml:12:5: m1: must be >= 4, got 2``) instead of
+only the key. Everything here is pure: errors are raised as :class:`~segsnake.errors.ConfigError`,
+nothing is printed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import numbers
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import yaml
+
+from segsnake.errors import ConfigError
+
+__all__ = [
+    "SegmentConfig",
+    "LineDict",
+    "LineList",
+    "load_yaml",
+    "load_segment_config",
+    "suggest",
+    "locate",
+]
+
+SHAPES = ("sphere", "cylinder")
+FEATURES = ("edge", "surface")
+PRIOR_SPACES = ("affine", "linear", "similarity", "translation")
+NAN_POLICIES = ("refuse", "fill")
+POLARITIES = ("auto", "bright", "dark", "none")
+M_MIN, M_MAX = 4, 200
+
+
+# --------------------------------------------------------------------------------------------------
+# YAML with positions
+# --------------------------------------------------------------------------------------------------
+
+
+class LineDict(dict):
+    """A ``dict`` from YAML that remembers where each key was written.
+
+    Attributes
+    ----------
+    key_marks : dict
+        Key -> ``(line, column)``, both 1-based, of the key in its file.
+    mark : tuple or None
+        ``(line, column)`` of the mapping itself.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.key_marks: dict[Any, tuple[int, int]] = {}
+        self.mark: tuple[int, int] | None = None
+
+
+class LineList(list):
+    """A ``list`` from YAML that remembers where each item starts (``item_marks``, 1-based)."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.item_marks: list[tuple[int, int]] = []
+        self.mark: tuple[int, int] | None = None
+
+
+def _mark(node: yaml.Node) -> tuple[int, int]:
+    return node.start_mark.line + 1, node.start_mark.column + 1
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that builds :class:`LineDict`/:class:`LineList`, refuses duplicate keys and
+    reads ``1e-6`` as a float (PyYAML follows YAML 1.1, where a float needs a dot: ``tol: 1e-6``
+    would silently become the *string* "1e-6")."""
+
+
+def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> LineDict:
+    loader.flatten_mapping(node)  # resolve YAML merge keys (<<) first
+    data = LineDict()
+    data.mark = _mark(node)
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            hash(key)
+        except TypeError:
+            raise yaml.constructor.ConstructorError(
+                None, None, "a mapping key must be a plain value", key_node.start_mark) from None
+        if key in data:
+            line, _ = data.key_marks[key]
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r} (first given at line {line})", key_node.start_mark)
+        data[key] = loader.construct_object(value_node, deep=True)
+        data.key_marks[key] = _mark(key_node)
+    return data
+
+
+def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> LineList:
+    data = LineList(loader.construct_object(child, deep=True) for child in node.value)
+    data.item_marks = [_mark(child) for child in node.value]
+    data.mark = _mark(node)
+    return data
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
+# YAML 1.2 floats: exponent without a dot ("1e-6", "5E3"); add_implicit_resolver copies the class
+# table first, so the global SafeLoader is untouched.
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def load_yaml(path: str | os.PathLike[str]) -> Any:
+    """Read a YAML file into plain Python values that remember their positions.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The file to read.
+
+    Returns
+    -------
+    object
+        Mappings are :class:`LineDict`, sequences :class:`LineList`; an empty file gives ``None``.
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, unreadable or not UTF-8 text, or its YAML is malformed
+        (message ``FILE:LINE:COL: problem``) or has a duplicate key.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a directory, not a YAML file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config file: {exc.strerror or exc}") from None
+    try:
+        return yaml.load(text, Loader=_Loader)  # noqa: S506 - _Loader derives from SafeLoader
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        problem = exc.problem or exc.context or "invalid YAML"
+        if exc.context and exc.problem and exc.context != exc.problem:
+            problem = f"{problem} ({exc.context})"
+        where = f"{p}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(p)
+        kind = "YAML error" if isinstance(exc, yaml.constructor.ConstructorError) else "YAML syntax error"
+        raise ConfigError(f"{where}: {kind}: {_one_line(problem)}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: YAML error: {_one_line(str(exc))}") from None
+
+
+def locate(source: str, container: Any = None, key: Any = None) -> str:
+    """``"FILE:LINE:COL"`` for ``key`` of a YAML-loaded ``container`` (or the container itself).
+
+    Falls back to ``source`` alone when the position is unknown (a mapping not read from YAML).
+    """
+    mark = None
+    if isinstance(container, LineDict):
+        mark = container.key_marks.get(key, container.mark) if key is not None else container.mark
+    elif isinstance(container, LineList):
+        if isinstance(key, int) and 0 <= key < len(container.item_marks):
+            mark = container.item_marks[key]
+        else:
+            mark = container.mark
+    return f"{source}:{mark[0]}:{mark[1]}" if mark else source
+
+
+def suggest(word: str, choices: Any) -> str:
+    """`` (did you mean 'x'?)`` for the closest of ``choices``, or an empty string."""
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+# --------------------------------------------------------------------------------------------------
+# Field validators: each returns the normalised value or raises ValueError with "must be ..."
+# --------------------------------------------------------------------------------------------------
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def _describe(v: Any) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return f"{v} (a boolean)"
+    if isinstance(v, str):
+        return f"{v!r} (a string)"
+    if isinstance(v, (list, tuple)):
+        return f"a list of {len(v)}"
+    if isinstance(v, dict):
+        return "a mapping"
+    return repr(v)
+
+
+def _float(v: Any, *, low: float | None = None, strict_low: bool = False) -> float:
+    if not _is_number(v):
+        raise ValueError(f"must be a number, got {_describe(v)}")
+    x = float(v)
+    if not math.isfinite(x):
+        raise ValueError(f"must be a finite number, got {x}")
+    if low is not None and (x <= low if strict_low else x < low):
+        raise ValueError(f"must be {'>' if strict_low else '>='} {low:g}, got {x:g}")
+    return x
+
+
+def _int(v: Any, *, low: int | None = None, high: int | None = None) -> int:
+    # 8.0 from a YAML file is accepted as 8; 8.5 is not.
+    if _is_number(v) and not isinstance(v, numbers.Integral) and float(v).is_integer():
+        v = int(v)
+    if not isinstance(v, numbers.Integral) or isinstance(v, bool):
+        raise ValueError(f"must be an integer, got {_describe(v)}")
+    if low is not None and v < low:
+        raise ValueError(f"must be >= {low}, got {v}")
+    if high is not None and v > high:
+        raise ValueError(f"must be <= {high}, got {v}")
+    return int(v)
+
+
+def _bool(v: Any) -> bool:
+    if not isinstance(v, bool):
+        raise ValueError(f"must be true or false, got {_describe(v)}")
+    return v
+
+
+def _choice(choices: tuple[str, ...]) -> Callable[[Any], str]:
+    def check(v: Any) -> str:
+        if not isinstance(v, str) or v not in choices:
+            hint = suggest(v, choices) if isinstance(v, str) else ""
+            raise ValueError(f"must be one of {', '.join(choices)}; got {_describe(v)}{hint}")
+        return v
+
+    return check
+
+
+def _vec3(positive: bool = False) -> Callable[[Any], list[float]]:
+    def check(v: Any) -> list[float]:
+        if not isinstance(v, (list, tuple)) or len(v) != 3 or not all(_is_number(x) for x in v):
+            raise ValueError(f"must be a list of 3 numbers [x, y, z], got {_describe(v)}")
+        out = [float(x) for x in v]
+        if not all(math.isfinite(x) for x in out):
+            raise ValueError(f"must be 3 finite numbers, got {out}")
+        if positive and min(out) <= 0:
+            raise ValueError(f"must be 3 numbers > 0, got {out}")
+        return out
+
+    return check
+
+
+def _threshold(v: Any) -> str | float:
+    if v == "auto":
+        return "auto"
+    if isinstance(v, str):  # from a command line or a quoted YAML value
+        try:
+            v = float(v)
+        except ValueError:
+            raise ValueError(f"must be 'auto' or a number, got {v!r}") from None
+    if not _is_number(v):
+        raise ValueError(f"must be 'auto' or a number, got {_describe(v)}")
+    return _float(v)
+
+
+def _path(v: Any) -> str:
+    if isinstance(v, os.PathLike):
+        v = os.fspath(v)
+    if not isinstance(v, str) or not v:
+        raise ValueError(f"must be a file path, got {_describe(v)}")
+    return v
+
+
+def _optional(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    def wrapped(v: Any) -> Any:
+        return None if v is None else check(v)
+
+    return wrapped
+
+
+# Field name -> validator. Every SegmentConfig field has one (checked at import time below).
+_VALIDATORS: dict[str, Callable[[Any], Any]] = {
+    "shape": _choice(SHAPES),
+    "center": _optional(_vec3()),
+    "radii": _optional(_vec3(positive=True)),
+    "axis_start": _optional(_vec3()),
+    "axis_end": _optional(_vec3()),
+    "radius": _optional(lambda v: _float(v, low=0.0, strict_low=True)),
+    "world": _bool,
+    "m1": _optional(lambda v: _int(v, low=M_MIN, high=M_MAX)),
+    "m2": _optional(lambda v: _int(v, low=M_MIN, high=M_MAX)),
+    "scale": _optional(lambda v: _float(v, low=0.0, strict_low=True)),
+    "feature": _choice(FEATURES),
+    "threshold": _threshold,
+    "seed_point": _optional(_vec3()),
+    "max_iter": lambda v: _int(v, low=1),
+    "tol": lambda v: _float(v, low=0.0, strict_low=True),
+    "coarse_to_fine": _bool,
+    "prior": _optional(_path),
+    "prior_weight": lambda v: _float(v, low=0.0),
+    "prior_space": _choice(PRIOR_SPACES),
+    "volume": _optional(lambda v: _int(v, low=0)),
+    "nan": _choice(NAN_POLICIES),
+    "polarity": _choice(POLARITIES),
+}
+
+# Options whose value is a file path: relative paths in a YAML file are relative to that file.
+PATH_KEYS = ("prior",)
+
+
+@dataclass
+class SegmentConfig:
+    """Every option of ``segsnake segment``; field names are a contract shared with the CLI and YAML.
+
+    Coordinates (``center``, ``axis_start``, ``axis_end``, ``seed_point``) are in mm of scaled index
+    space (``p = (i sx, j sy, k sz)``) unless ``world`` is true, in which case they are NIfTI world
+    coordinates. ``radii`` and ``radius`` are in mm. ``None`` means "choose automatically / model
+    default".
+    """
+
+    shape: str = "sphere"
+    center: list[float] | None = None
+    radii: list[float] | None = None
+    axis_start: list[float] | None = None
+    axis_end: list[float] | None = None
+    radius: float | None = None
+    world: bool = False
+    m1: int | None = None
+    m2: int | None = None
+    scale: float | None = None
+    feature: str = "edge"
+    threshold: str | float = "auto"
+    seed_point: list[float] | None = None
+    max_iter: int = 300
+    tol: float = 1e-6
+    coarse_to_fine: bool = True
+    prior: str | None = None
+    prior_weight: float = 0.0
+    prior_space: str = "affine"
+    volume: int | None = None
+    nan: str = "refuse"
+    polarity: str = "auto"
+
+    # -- construction -------------------------------------------------------------------------
+
+    @classmethod
+    def keys(cls) -> tuple[str, ...]:
+        """The valid option names, in declaration order."""
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def from_mapping(cls, d: Mapping[str, Any] | None, *, source: str = "<config>",
+                     base: "SegmentConfig | None" = None) -> "SegmentConfig":
+        """Validate a mapping of options and build a config.
+
+        Parameters
+        ----------
+        d : mapping or None
+            Option name -> value. ``-`` in a name is read as ``_`` (``max-iter`` = ``max_iter``).
+            A :class:`LineDict` from :func:`load_yaml` makes errors point at the key's line.
+        source : str
+            Name used in error messages (usually the YAML file).
+        base : SegmentConfig, optional
+            Values for keys absent from ``d`` (defaults to the dataclass defaults).
+
+        Returns
+        -------
+        SegmentConfig
+
+        Raises
+        ------
+        ConfigError
+            Unknown key (with the closest valid key suggested), wrong type or out-of-range value,
+            or inconsistent options; the message starts with ``source[:LINE:COL]``.
+        """
+        if d is None:
+            d = {}
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"{locate(source, d)}: options must be a mapping of key: value, "
+                              f"got {_describe(d)}")
+        values = dataclasses.asdict(base) if base is not None else {}
+        seen: dict[str, Any] = {}
+        for raw_key, value in d.items():
+            where = locate(source, d, raw_key)
+            if not isinstance(raw_key, str):
+                raise ConfigError(f"{where}: option names must be text, got {raw_key!r}")
+            key = raw_key.replace("-", "_")
+            if key not in _VALIDATORS:
+                raise ConfigError(f"{where}: unknown option {raw_key!r}{suggest(key, _VALIDATORS)}")
+            if key in seen:
+                raise ConfigError(f"{where}: option {key!r} given twice (as {seen[key]!r} "
+                                  f"and {raw_key!r})")
+            seen[key] = raw_key
+            try:
+                values[key] = _VALIDATORS[key](value)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: {key}: {exc}") from None
+        config = cls(**values)
+        problem = config._consistency_problem()
+        if problem is not None:
+            key, message = problem
+            # Point at the offending key when it was given here; otherwise at the mapping.
+            raw = seen.get(key)
+            where = locate(source, d, raw) if raw is not None else locate(source, d)
+            raise ConfigError(f"{where}: {message}")
+        return config
+
+    def _consistency_problem(self) -> tuple[str, str] | None:
+        """Checks that involve more than one option: ``(key, message)`` or ``None``."""
+        if self.axis_start is not None and self.axis_end is not None:
+            length = math.dist(self.axis_start, self.axis_end)
+            if length == 0.0:
+                return "axis_end", "axis_start and axis_end coincide: the cylinder axis has zero length"
+        return None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain, JSON- and YAML-serialisable dict of every option (lists copied)."""
+        return dataclasses.asdict(self)
+
+    def replace(self, **overrides: Any) -> "SegmentConfig":
+        """A validated copy with ``overrides`` applied on top of this config.
+
+        ``None`` values are ignored: they mean "not given" (an unset command-line flag), so a flag
+        the user did not pass never erases a value from a YAML file. Unknown names raise
+        :class:`ConfigError` with a suggestion, like :meth:`from_mapping`.
+        """
+        given = {k: v for k, v in overrides.items() if v is not None}
+        return type(self).from_mapping(given, source="command line", base=self)
+
+
+if set(_VALIDATORS) != set(SegmentConfig.keys()):  # pragma: no cover - developer guard
+    raise RuntimeError("segsnake.config: validators and SegmentConfig fields differ")
+
+
+def resolve_paths(options: dict[str, Any], base_dir: str | os.PathLike[str]) -> dict[str, Any]:
+    """Make relative path options (``prior``) absolute against ``base_dir``; returns a new dict."""
+    out = dict(options)
+    for key in PATH_KEYS:
+        value = out.get(key)
+        if isinstance(value, str) and value and not os.path.isabs(os.path.expanduser(value)):
+            out[key] = str(Path(base_dir) / value)
+        elif isinstance(value, str) and value:
+            out[key] = os.path.expanduser(value)
+    return out
+
+
+def load_segment_config(path: str | os.PathLike[str]) -> SegmentConfig:
+    """Read ``segment --config FILE.yaml``: a flat mapping of :class:`SegmentConfig` options.
+
+    Relative paths inside (``prior``) are taken relative to the YAML file's directory. An empty
+    file gives the defaults.
+
+    Raises
+    ------
+    ConfigError
+        Missing/unreadable file, YAML syntax error (with line and column), unknown key, wrong type
+        or range (with the key's line).
+    """
+    p = Path(path)
+    data = load_yaml(p)
+    if data is None:
+        return SegmentConfig()
+    if not isinstance(data, LineDict):
+        raise ConfigError(f"{locate(str(p), data)}: a segment config must be a mapping of "
+                          f"option: value, got {_describe(data)}")
+    config = SegmentConfig.from_mapping(data, source=str(p))
+    if config.prior is not None:
+        config = dataclasses.replace(config, **resolve_paths({"prior": config.prior}, p.parent))
+    return config
