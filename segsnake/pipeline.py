@@ -1,0 +1,325 @@
+"""The segmentation pipeline: image -> edge map -> lookups -> snake -> mask.
+
+:func:`segment_volume` is the numerical core (arrays in, model and mask out, no files);
+:func:`segment_file` wraps it with loading, validation and the outputs of ``segsnake segment``.
+
+How the surface gets to the boundary (design.md, "Where the minimum sits"):
+
+1. *Capture stages.* ``E = -flux(grad f_s)`` with ``f_s`` the edge map smoothed at a scale
+   ``s`` that starts at half the initial radius and halves down to about 2 mm. A wide ridge
+   pulls from far away; each stage starts where the previous one stopped. Their minimum sits at
+   the inner inflection of the ridge, about ``s`` inside the edge, which is why they are only
+   the approach.
+2. *Refinement.* ``E = -flux(f n_out)``: the flux of the edge map times the detected surface
+   normal, oriented outward. By the divergence theorem it equals ``-integral f (n_out . n) dA``
+   over the surface, which is largest when the surface lies *on* the ridge and aligned with it,
+   so it has no inward bias (only ``2 s^2 / R`` outward from curvature). For step edges the
+   orientation comes from the step polarity (bright inside: outward is down the gradient), so
+   an edge of the wrong polarity repels instead of attracting; for thin sheets it comes from
+   the snake's centre or axis.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from segsnake.energy import FluxTerm, SumEnergy
+from segsnake.errors import ConfigError, InputError, SegmentationError
+from segsnake.optimize import minimize_energy
+from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
+
+__all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class SegmentResult:
+    """What :func:`segment_volume` found."""
+
+    model: SplineSurface
+    mask: NDArray[np.bool_]
+    energy: float
+    iterations: int
+    history: list[dict[str, Any]]
+    timings: dict[str, float]
+    polarity: str
+    init_model: SplineSurface
+    settings: dict[str, Any] = field(default_factory=dict)
+
+
+def auto_init(image: NDArray, spacing: Sequence[float]) -> tuple[NDArray, NDArray]:
+    """Rough centre and half-size radii (both in voxel indices) of the brightest large object.
+
+    Otsu's threshold of the image, the largest connected component, its centroid, and the
+    radii of the ellipsoid with the same second moments, halved (so the initial sphere lies
+    inside the object, as in thesis sec. 7.2.2/7.2.3).
+    """
+    from skimage.filters import threshold_otsu
+
+    finite = image[np.isfinite(image)]
+    if finite.size == 0 or finite.min() == finite.max():
+        raise SegmentationError("cannot estimate an initial sphere: the image is constant")
+    fg = image > threshold_otsu(finite)
+    labels, n = ndimage.label(fg)
+    if n == 0:
+        raise SegmentationError("cannot estimate an initial sphere: no foreground after Otsu")
+    sizes = np.bincount(labels.ravel())[1:]
+    comp = labels == (np.argmax(sizes) + 1)
+    idx = np.argwhere(comp).astype(np.float64)
+    center = idx.mean(axis=0)
+    sp = np.asarray(spacing, dtype=np.float64)
+    cov = np.cov((idx * sp).T) if len(idx) > 3 else np.eye(3)
+    # A solid ellipsoid of semi-axis a has variance a^2 / 5 along it.
+    radii_mm = np.sqrt(np.maximum(np.linalg.eigvalsh(cov), 0.0) * 5.0)
+    r = 0.5 * float(np.exp(np.mean(np.log(np.maximum(radii_mm, sp.min())))))
+    return center, np.full(3, r) / sp
+
+
+def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
+                  index_from_world: Callable[[NDArray], NDArray] | None = None,
+                  image: NDArray | None = None) -> SplineSurface:
+    """Initial snake (in mm, scaled index space) from the ``segment`` options.
+
+    Positions and radii are voxel indices along the array axes, or world millimetres with
+    ``config.world`` (then ``index_from_world`` converts points, and radii are divided by the
+    spacing).
+    """
+    sp = np.asarray(spacing, dtype=np.float64)
+    ext = (np.asarray(shape) - 1) * sp
+
+    def point(p: Sequence[float] | None, name: str) -> NDArray | None:
+        if p is None:
+            return None
+        q = np.asarray(p, dtype=np.float64)
+        if config.world:
+            if index_from_world is None:
+                raise ConfigError("--world needs an image with an affine")
+            q = index_from_world(q[None])[0]
+        mm = q * sp
+        if np.any(mm < -0.5 * sp) or np.any(mm > ext + 0.5 * sp):
+            raise ConfigError(f"{name} {list(map(float, p))} lies outside the volume "
+                              f"(shape {tuple(int(n) for n in shape)})")
+        return mm
+
+    def lengths(r: Sequence[float], name: str) -> NDArray:
+        r = np.asarray(r, dtype=np.float64)
+        if np.any(~np.isfinite(r)) or np.any(r <= 0):
+            raise ConfigError(f"{name} must be positive, got {list(map(float, np.atleast_1d(r)))}")
+        return r if config.world else r * sp
+
+    if config.shape == "sphere":
+        m1 = config.m1 or 9
+        m2 = config.m2 or 9
+        center = point(config.center, "--center")
+        if config.radii is not None:
+            radii_mm = lengths(config.radii, "--radii")
+        if center is None or config.radii is None:
+            if image is None:
+                raise ConfigError("sphere initialization needs --center and --radii")
+            c_idx, r_idx = auto_init(image, sp)
+            center = c_idx * sp if center is None else center
+            if config.radii is None:
+                radii_mm = r_idx * sp
+        return SphereModel.ellipsoid(center, radii_mm, m1=m1, m2=m2)
+    if config.shape == "cylinder":
+        if config.axis_start is None or config.axis_end is None or config.radius is None:
+            raise ConfigError("cylinder initialization needs --axis-start, --axis-end and --radius")
+        a0 = point(config.axis_start, "--axis-start")
+        a1 = point(config.axis_end, "--axis-end")
+        if np.allclose(a0, a1):
+            raise ConfigError("--axis-start and --axis-end coincide")
+        r = float(lengths([config.radius], "--radius")[0]) if config.world else \
+            float(config.radius * np.exp(np.mean(np.log(sp))))
+        return CylinderModel.from_axis(a0, a1, r, m1=config.m1 or 8, m2=config.m2 or 4)
+    raise ConfigError(f"unknown shape {config.shape!r} (expected sphere or cylinder)")
+
+
+def _center_and_axis(model: SplineSurface) -> tuple[NDArray, NDArray | None]:
+    if model.kind == "cylinder":
+        r0, r1 = model.end_rings(4 * model.m1)
+        c0, c1 = r0.mean(axis=0), r1.mean(axis=0)
+        axis = c1 - c0
+        return c0, axis / max(np.linalg.norm(axis), 1e-12)
+    return model.control_points().reshape(-1, 3).mean(axis=0), None
+
+
+def _radial_field(shape: Sequence[int], spacing: Sequence[float], center: NDArray,
+                  axis: NDArray | None) -> list[NDArray]:
+    """Unit vectors pointing away from a centre (sphere) or an axis line (cylinder), per voxel."""
+    grids = np.meshgrid(*[np.arange(n, dtype=np.float32) * np.float32(s)
+                          for n, s in zip(shape, spacing)], indexing="ij", sparse=True)
+    d = [g - np.float32(c) for g, c in zip(grids, center)]
+    if axis is not None:
+        along = d[0] * axis[0] + d[1] * axis[1] + d[2] * axis[2]
+        d = [di - along * np.float32(a) for di, a in zip(d, axis)]
+    norm = np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2) + np.float32(1e-6)
+    return [np.broadcast_to(di / norm, tuple(shape)) for di in d]
+
+
+def _polarity(model: SplineSurface, gradient: NDArray, spacing: Sequence[float]) -> int:
+    """+1 when the object is brighter than its surroundings along the current surface."""
+    from segsnake.lookup import Lookup  # noqa: F401  (keeps import errors at one place)
+
+    u = np.linspace(0, 1, 4 * model.m1, endpoint=False)
+    v = np.linspace(0.05, 0.95, 4 * model.m2)
+    pts = model.evaluate(u, v)[0].reshape(-1, 3)
+    n = model.normals(u, v).reshape(-1, 3)
+    idx = np.round(pts / np.asarray(spacing)).astype(int)
+    idx = np.clip(idx, 0, np.asarray(gradient.shape[:3]) - 1)
+    g = gradient[idx[:, 0], idx[:, 1], idx[:, 2]]
+    return 1 if float(np.sum(g * n)) <= 0 else -1
+
+
+def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
+                   index_from_world: Callable[[NDArray], NDArray] | None = None,
+                   progress: Progress | None = None, extra_energy=None) -> SegmentResult:
+    """Segment one structure in ``image`` with the options of ``config`` (a SegmentConfig).
+
+    Parameters
+    ----------
+    image : ndarray (nx, ny, nz)
+        Intensities (float).
+    spacing : (sx, sy, sz)
+        Voxel size in mm.
+    config : SegmentConfig
+        The ``segment`` options.
+    index_from_world : callable, optional
+        World mm -> voxel index conversion (for ``config.world``).
+    progress : callable(stage, fraction), optional
+        Progress reports in [0, 1].
+    extra_energy : callable(model) -> Energy, optional
+        Added to every stage (the shape prior plugs in here).
+    """
+    from segsnake.features import edge_map
+    from segsnake.lookup import Lookup
+    from segsnake.rasterize import rasterize
+
+    timings: dict[str, float] = {}
+    sp = tuple(float(s) for s in spacing)
+    shape = image.shape
+    report = progress or (lambda stage, frac: None)
+
+    t0 = time.perf_counter()
+    model = initial_model(config, sp, shape, index_from_world, image)
+    init = model
+    timings["init_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    scale = config.scale if config.scale is not None else max(1.0, 1.5 * max(sp))
+    seed = None
+    if config.seed_point is not None:
+        seed = np.asarray(config.seed_point, dtype=float)
+    em = edge_map(image, sp, mode=config.feature, scale_mm=scale,
+                  threshold=config.threshold, seed=seed)
+    timings["edge_map_s"] = time.perf_counter() - t0
+    report("edge map", 0.15)
+
+    # Capture schedule: from half the initial size down to ~2 mm (or the detector scale).
+    r0 = _model_radius(model)
+    floor = max(2.0 * em.smooth_mm, 2.0)
+    sigmas = []
+    s = 0.5 * r0
+    while config.coarse_to_fine and s > floor * 1.5:
+        sigmas.append(s)
+        s *= 0.5
+    sigmas.append(floor)
+
+    history: list[dict[str, Any]] = []
+    total_iter = 0
+    bounds = (np.asarray(shape) - 1) * np.asarray(sp)
+    t_opt = 0.0
+    t_lookup = 0.0
+    n_stages = len(sigmas) + 1
+    for i, sigma in enumerate(sigmas):
+        t0 = time.perf_counter()
+        f_s = ndimage.gaussian_filter(em.f, [sigma / x for x in sp], mode="constant")
+        lookup = Lookup.from_field(f_s, sp)
+        t_lookup += time.perf_counter() - t0
+        # A wide ridge may pull the surface across the whole gap; later stages move ~sigma.
+        band = r0 if i == 0 else 2.0 * sigmas[i - 1]
+        model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, band, sigma)
+        t_opt += res["time_s"]
+        total_iter += res["iterations"]
+        history.append({"stage": f"capture sigma={sigma:.2f}mm", **res})
+        report("snake", 0.15 + 0.8 * (i + 1) / n_stages)
+
+    # Refinement: flux of f times the outward-oriented detected normal.
+    t0 = time.perf_counter()
+    polarity = config.polarity
+    if config.feature == "edge" and polarity in ("auto", "bright", "dark"):
+        pol = _polarity(model, em.gradient, sp) if polarity == "auto" else \
+            (1 if polarity == "bright" else -1)
+        polarity = "bright" if pol > 0 else "dark"
+        # normals point to the brighter side; outward is away from a bright inside.
+        out = [-pol * em.normals[..., d] for d in range(3)]
+    else:
+        c, axis = _center_and_axis(model)
+        radial = _radial_field(shape, sp, c, axis)
+        dot = sum(em.normals[..., d] * radial[d] for d in range(3))
+        sign = np.where(dot >= 0, np.float32(1), np.float32(-1))
+        out = [sign * em.normals[..., d] for d in range(3)]
+        polarity = "none" if config.feature == "edge" else "sheet"
+    lookup = Lookup.from_vector_field(*(em.f * o for o in out), spacing=sp)
+    t_lookup += time.perf_counter() - t0
+    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, 2.0 * sigmas[-1],
+                            min(em.smooth_mm, scale))
+    t_opt += res["time_s"]
+    total_iter += res["iterations"]
+    history.append({"stage": "refine", **res})
+    timings["lookup_s"] = t_lookup
+    timings["optimize_s"] = t_opt
+
+    t0 = time.perf_counter()
+    mask = rasterize(model, shape, sp)
+    timings["mask_s"] = time.perf_counter() - t0
+    if not mask.any():
+        raise SegmentationError("the final surface encloses no voxel centre")
+    report("done", 1.0)
+    settings = {"scale_mm": scale, "capture_sigmas_mm": sigmas, "smooth_mm": em.smooth_mm,
+                "levels": None if em.levels is None else list(map(float, em.levels)),
+                "edge_voxels": int(em.mask.sum())}
+    return SegmentResult(model, mask, history[-1]["energy"], total_iter, history, timings,
+                         polarity, init, settings)
+
+
+def _model_radius(model: SplineSurface) -> float:
+    if model.kind == "cylinder":
+        r0, _ = model.end_rings(4 * model.m1)
+        return float(np.linalg.norm(r0 - r0.mean(axis=0), axis=1).mean())
+    return float((3 * abs(model.volume(order=4)) / (4 * math.pi)) ** (1 / 3))
+
+
+def quadrature_order(model: SplineSurface, feature_mm: float, band_mm: float) -> int:
+    """Gauss-Legendre nodes per knot interval so that nodes are at most feature_mm / 2 apart.
+
+    The integrand varies on the scale of the lookup's features; an under-resolved quadrature is
+    not just inaccurate, the optimizer *exploits* it (it finds shapes whose few nodes all sit on
+    favourable values). Intervals are measured on the control grid, grown by the trust band.
+    """
+    C = model.control_points()
+    longest = max(np.linalg.norm(np.diff(C, axis=0), axis=-1).max(),
+                  np.linalg.norm(np.diff(C, axis=1), axis=-1).max()) + 2 * band_mm
+    return int(np.clip(np.ceil(longest / (0.5 * feature_mm)), 4, 32))
+
+
+def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm):
+    order = quadrature_order(model, feature_mm, band)
+    terms = [FluxTerm(model, lookup, weight=weight, order=order)]
+    if extra_energy is not None:
+        terms.append(extra_energy(model))
+    energy = SumEnergy(terms)
+    t0 = time.perf_counter()
+    res = minimize_energy(model, energy, max_iter=config.max_iter, tol=max(config.tol, 1e-5),
+                          bounds_mm=bounds, max_displacement_mm=band)
+    return res.model, {"energy": res.energy, "iterations": res.iterations, "quadrature_order": order,
+                       "evaluations": res.evaluations, "converged": res.converged,
+                       "message": res.message, "history": res.history,
+                       "time_s": time.perf_counter() - t0}
