@@ -1,6 +1,7 @@
 """Quasi-Newton minimization of a snake energy over the model's free parameters.
 
-L-BFGS-B (scipy) on the exact gradient, with convergence on the relative energy change and on
+L-BFGS on the exact gradient with a cap on how far a control point moves per iteration, with
+convergence on the relative energy change and on
 the step size, an iteration cap, a progress callback, and guards that turn numerical trouble
 into :class:`segsnake.errors.SegmentationError` instead of a hang or a garbage surface: a NaN or
 infinite energy or gradient, a surface that leaves the volume, one that collapses (its volume
@@ -14,13 +15,12 @@ from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize
-
+from scipy.linalg import cho_factor, cho_solve
 from segsnake.energy import Energy
 from segsnake.errors import SegmentationError
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["OptimizeResult", "minimize_energy"]
+__all__ = ["OptimizeResult", "minimize_energy", "surface_metric"]
 
 
 @dataclass
@@ -36,17 +36,14 @@ class OptimizeResult:
     history: list[float] = field(default_factory=list)
 
 
-class _Stop(Exception):
-    pass
-
-
 def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300,
                     tol: float = 1e-5, step_tol_mm: float = 1e-3,
+                    max_step_mm: float = 1.0, memory: int = 10,
+                    metric: NDArray | None = None,
                     bounds_mm: NDArray | None = None,
                     callback: Callable[[int, float], None] | None = None,
-                    min_volume_fraction: float = 0.02,
-                    max_displacement_mm: float | None = None) -> OptimizeResult:
-    """Minimize ``energy`` starting from ``model``.
+                    min_volume_fraction: float = 0.02) -> OptimizeResult:
+    """Minimize ``energy`` starting from ``model`` with step-limited L-BFGS.
 
     Parameters
     ----------
@@ -60,6 +57,20 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         Stop when the relative energy change of an iteration falls below ``tol``.
     step_tol_mm : float
         Stop when no control point moved more than this in an iteration.
+    max_step_mm : float
+        No point of the surface moves more than this in one iteration (measured on a grid of
+        four samples per knot interval). The flux is computed through the
+        divergence theorem, which counts a region enclosed twice twice and flips sign for an
+        inside-out surface; an unlimited quasi-Newton step can jump straight into such a
+        shape. Capping the step makes the iteration follow the gradient flow of the surface,
+        which keeps it embedded, while the L-BFGS direction still gives fast convergence.
+    memory : int
+        Number of L-BFGS correction pairs.
+    metric : ndarray (P, P), optional
+        Symmetric positive definite metric on the parameters (default: :func:`surface_metric`
+        of the initial model): steepest descent becomes the L2 gradient flow of the surface,
+        so every part of it (a pole cap as much as the equator) moves at the speed the energy
+        asks for, whatever its parameterization.
     bounds_mm : ndarray (3,), optional
         Extent of the volume in mm; a control point farther than one extent outside it means
         the snake escaped (SegmentationError).
@@ -67,67 +78,141 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         Progress report after each iteration.
     min_volume_fraction : float
         A volume below this fraction of the initial one counts as a collapse.
-    max_displacement_mm : float, optional
-        Trust band: box bounds of +- this many mm on every control point around its start (and
-        +- pi times it on tangent vectors, whose length scales like pi times a radius). The
-        flux through a surface is computed by the divergence theorem, which counts a region
-        enclosed twice twice; without a band, a quasi-Newton step can fold the surface through
-        itself and "gain" energy that way.
     """
     shape = model.params.shape
-    x0 = model.params.ravel().copy()
+    sampler = _displacement_operator(model)
     v0 = abs(model.volume(order=4))
-    history: list[float] = []
-    state = {"x": x0.copy(), "f": None, "nit": 0, "nfev": 0, "reason": ""}
+    nfev = 0
 
     def fun(x: NDArray) -> tuple[float, NDArray]:
-        state["nfev"] += 1
-        value, grad = energy.value_and_grad(x.reshape(shape))
+        nonlocal nfev
+        nfev += 1
+        value, grad = energy.value_and_grad(x)
         if not np.isfinite(value) or not np.all(np.isfinite(grad)):
             raise SegmentationError("energy or gradient became NaN/Inf during optimization "
-                                    f"(iteration {state['nit']})")
-        return float(value), grad.ravel()
+                                    f"(evaluation {nfev})")
+        return float(value), grad
 
-    def on_iter(xk: NDArray) -> None:
-        state["nit"] += 1
-        f, _ = energy.value_and_grad(xk.reshape(shape))
-        prev = history[-1] if history else None
-        history.append(float(f))
-        step = np.abs(xk - state["x"]).max()
-        state["x"] = xk.copy()
+    def displacement(d: NDArray) -> float:
+        return float(np.max(np.linalg.norm(sampler @ d, axis=1)))
+
+    if metric is None:
+        metric = surface_metric(model)
+    chol = cho_factor(metric)
+
+    def precondition(v: NDArray) -> NDArray:
+        return cho_solve(chol, v)
+
+    x = model.params.copy()
+    f, g = fun(x)
+    history = [f]
+    s_list: list[NDArray] = []
+    y_list: list[NDArray] = []
+    converged, message, it = False, f"iteration cap ({max_iter}) reached", 0
+    for it in range(1, max_iter + 1):
+        d = -_two_loop(g, s_list, y_list, precondition)
+        slope = float(np.sum(g * d))
+        if slope >= 0:  # not a descent direction: restart from (preconditioned) steepest descent
+            s_list.clear()
+            y_list.clear()
+            d = -precondition(g)
+            slope = float(np.sum(g * d))
+        if slope == 0.0:
+            converged, message = True, "zero gradient"
+            break
+        move = displacement(d)
+        if not s_list:
+            # No curvature information yet (first step, or the energy is concave along the
+            # path, as it is while a surface is being pulled towards an edge): the direction
+            # carries no step length, so try the largest allowed one; Armijo shortens it.
+            t = max_step_mm / move if move > 0 else 1.0
+        else:
+            t = min(1.0, max_step_mm / move) if move > 0 else 1.0
+        for _ in range(30):  # Armijo backtracking
+            x_new = x + t * d
+            f_new, g_new = fun(x_new)
+            if f_new <= f + 1e-4 * t * slope:
+                break
+            t *= 0.5
+        else:
+            converged, message = True, "no further decrease along the search direction"
+            break
+        s, y = x_new - x, g_new - g
+        if float(np.sum(s * y)) > 1e-12 * float(np.sqrt(np.sum(s * s) * np.sum(y * y))):
+            s_list.append(s)
+            y_list.append(y)
+            if len(s_list) > memory:
+                s_list.pop(0)
+                y_list.pop(0)
+        change = abs(f - f_new)
+        step = displacement(s)
+        x, f, g = x_new, f_new, g_new
+        history.append(f)
         if callback is not None:
-            callback(state["nit"], float(f))
-        if prev is not None and abs(prev - f) <= tol * max(abs(prev), abs(f), 1e-12):
-            state["reason"] = "relative energy change below tol"
-            raise _Stop
+            callback(it, f)
+        if change <= tol * max(abs(f), 1e-12) and it > 1:
+            converged, message = True, "relative energy change below tol"
+            break
         if step < step_tol_mm:
-            state["reason"] = "step below step_tol_mm"
-            raise _Stop
-
-    f0, _ = fun(x0)
-    history.append(f0)
-    converged = True
-    try:
-        bounds = None
-        if max_displacement_mm is not None:
-            band = np.where(model.is_vector, np.pi, 1.0)[:, None] * max_displacement_mm
-            band = np.broadcast_to(band, shape).ravel()
-            bounds = list(zip(x0 - band, x0 + band))
-        res = minimize(fun, x0, jac=True, method="L-BFGS-B", callback=on_iter, bounds=bounds,
-                       options={"maxiter": max_iter, "maxcor": 20, "ftol": 0.0, "gtol": 1e-12})
-        x_final = res.x
-        message = str(res.message)
-        converged = bool(res.success) and state["nit"] < max_iter
-        if state["nit"] >= max_iter:
-            message = f"iteration cap ({max_iter}) reached"
-    except _Stop:
-        x_final = state["x"]
-        message = state["reason"]
-    final = model.with_params(x_final.reshape(shape))
+            converged, message = True, "step below step_tol_mm"
+            break
+    final = model.with_params(x)
     _check_surface(final, v0, bounds_mm, min_volume_fraction)
-    f_final, _ = energy.value_and_grad(final.params)
-    return OptimizeResult(final, float(f_final), state["nit"], state["nfev"], converged, message,
-                          history)
+    return OptimizeResult(final, f, it, nfev, converged, message, history)
+
+
+def _displacement_operator(model: SplineSurface, per_interval: int = 4) -> NDArray:
+    """Dense map from a parameter change ``(P, 3)`` to surface displacements on a grid."""
+    u = (np.arange(per_interval * model.m1) + 0.5) / (per_interval * model.m1)
+    v = np.linspace(0.0, 1.0, per_interval * model.m2 + 1)
+    gb = model.grid_basis(u, v)
+    B = np.einsum("uk,vl->uvkl", gb.Bu.toarray(), gb.Bv.toarray()).reshape(len(u) * len(v), -1)
+    return np.asarray((model.constraint.T @ B.T).T)
+
+
+def surface_metric(model: SplineSurface, order: int = 4, ridge: float = 1e-6) -> NDArray:
+    """Area-weighted mass matrix of the model's basis, pulled back to the free parameters.
+
+    ``M = A^T (sum_q W_q |n_q| b_q b_q^T) A`` with ``b_q`` the tensor basis at quadrature node q,
+    ``|n_q|`` the area element of the current surface and ``A`` the constraint map, so that
+    ``d^T M d`` is the squared L2 norm (over the surface) of the displacement ``d``. A tiny
+    ridge keeps it positive definite where a basis function has (numerically) no area.
+    """
+    gb, w = model.quadrature(order)
+    _, su, sv = gb.evaluate(model.control_points())
+    area = w * np.linalg.norm(np.cross(sv, su), axis=-1)  # (nu, nv)
+    Bu = gb.Bu.toarray()  # (nu, M1)
+    Bv = gb.Bv.toarray()  # (nv, L)
+    # sum_{u,v} a(u,v) Bu[u,k] Bv[v,l] Bu[u,k'] Bv[v,l'] without forming the Kronecker product.
+    M_C = np.einsum("uv,uk,vl,um,vn->klmn", area, Bu, Bv, Bu, Bv, optimize=True)
+    n = Bu.shape[1] * Bv.shape[1]
+    M_C = M_C.reshape(n, n)
+    A = model.constraint
+    M = np.asarray((A.T @ (A.T @ M_C).T).T)
+    M = 0.5 * (M + M.T)
+    M += ridge * np.trace(M) / len(M) * np.eye(len(M))
+    return M
+
+
+def _two_loop(g: NDArray, s_list: list[NDArray], y_list: list[NDArray],
+              precondition: Callable[[NDArray], NDArray]) -> NDArray:
+    """L-BFGS two-loop recursion with a preconditioned initial Hessian (approximates H^-1 g)."""
+    q = g.copy()
+    alphas = []
+    for s, y in zip(reversed(s_list), reversed(y_list)):
+        rho = 1.0 / float(np.sum(y * s))
+        a = rho * float(np.sum(s * q))
+        alphas.append((rho, a))
+        q -= a * y
+    r = precondition(q)
+    if s_list:
+        s, y = s_list[-1], y_list[-1]
+        r *= float(np.sum(s * y)) / float(np.sum(y * precondition(y)))
+    q = r
+    for (s, y), (rho, a) in zip(zip(s_list, y_list), reversed(alphas)):
+        b = rho * float(np.sum(y * q))
+        q += (a - b) * s
+    return q
 
 
 def _check_surface(model: SplineSurface, v0: float, bounds_mm: NDArray | None,

@@ -33,11 +33,15 @@ from scipy import ndimage
 from segsnake.energy import FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, InputError, SegmentationError
 from segsnake.optimize import minimize_energy
+from segsnake.priors import AffinePrior
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
 __all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
 
 Progress = Callable[[str, float], None]
+
+#: Weight of the internal energy (see :func:`_run_stage`), relative to the image energy.
+REGULARIZATION = 1.0
 
 
 @dataclass
@@ -226,7 +230,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     r0 = _model_radius(model)
     floor = max(2.0 * em.smooth_mm, 2.0)
     sigmas = []
-    s = 0.5 * r0
+    s = r0
     while config.coarse_to_fine and s > floor * 1.5:
         sigmas.append(s)
         s *= 0.5
@@ -243,8 +247,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         f_s = ndimage.gaussian_filter(em.f, [sigma / x for x in sp], mode="constant")
         lookup = Lookup.from_field(f_s, sp)
         t_lookup += time.perf_counter() - t0
-        # A wide ridge may pull the surface across the whole gap; later stages move ~sigma.
-        band = r0 if i == 0 else 2.0 * sigmas[i - 1]
+        # Steps of at most half the ridge width: the surface follows the gradient flow.
+        band = 0.5 * sigma
         model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, band, sigma)
         t_opt += res["time_s"]
         total_iter += res["iterations"]
@@ -269,7 +273,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         polarity = "none" if config.feature == "edge" else "sheet"
     lookup = Lookup.from_vector_field(*(em.f * o for o in out), spacing=sp)
     t_lookup += time.perf_counter() - t0
-    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, 2.0 * sigmas[-1],
+    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, 0.5 * em.smooth_mm,
                             min(em.smooth_mm, scale))
     t_opt += res["time_s"]
     total_iter += res["iterations"]
@@ -297,29 +301,40 @@ def _model_radius(model: SplineSurface) -> float:
     return float((3 * abs(model.volume(order=4)) / (4 * math.pi)) ** (1 / 3))
 
 
-def quadrature_order(model: SplineSurface, feature_mm: float, band_mm: float) -> int:
+def quadrature_order(model: SplineSurface, feature_mm: float) -> int:
     """Gauss-Legendre nodes per knot interval so that nodes are at most feature_mm / 2 apart.
 
     The integrand varies on the scale of the lookup's features; an under-resolved quadrature is
     not just inaccurate, the optimizer *exploits* it (it finds shapes whose few nodes all sit on
-    favourable values). Intervals are measured on the control grid, grown by the trust band.
+    favourable values). Intervals are measured on the control grid, with room to grow by half.
     """
     C = model.control_points()
-    longest = max(np.linalg.norm(np.diff(C, axis=0), axis=-1).max(),
-                  np.linalg.norm(np.diff(C, axis=1), axis=-1).max()) + 2 * band_mm
+    longest = 1.5 * max(np.linalg.norm(np.diff(C, axis=0), axis=-1).max(),
+                        np.linalg.norm(np.diff(C, axis=1), axis=-1).max())
     return int(np.clip(np.ceil(longest / (0.5 * feature_mm)), 4, 32))
 
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm):
-    order = quadrature_order(model, feature_mm, band)
-    terms = [FluxTerm(model, lookup, weight=weight, order=order)]
+    order = quadrature_order(model, feature_mm)
+    flux = FluxTerm(model, lookup, weight=weight, order=order)
+    terms = [flux]
+    if REGULARIZATION > 0:
+        # Internal energy: distance to the nearest ellipsoid (affine sphere prior; for the
+        # cylinder, to the nearest elliptic cylinder), scaled so that a deviation of the whole
+        # surface by its own radius costs REGULARIZATION times the stage's image energy.
+        e0 = abs(flux.value_and_grad(model.params)[0])
+        r = _model_radius(model)
+        ref = SphereModel.unit(model.m1, model.m2) if model.kind == "sphere" else \
+            CylinderModel.unit(model.m1, model.m2)
+        terms.append(AffinePrior(model, ref, weight=REGULARIZATION * max(e0, 1e-12) / r ** 2))
     if extra_energy is not None:
         terms.append(extra_energy(model))
     energy = SumEnergy(terms)
     t0 = time.perf_counter()
     res = minimize_energy(model, energy, max_iter=config.max_iter, tol=max(config.tol, 1e-5),
-                          bounds_mm=bounds, max_displacement_mm=band)
+                          bounds_mm=bounds, max_step_mm=band)
     return res.model, {"energy": res.energy, "iterations": res.iterations, "quadrature_order": order,
+                       "volume_mm3": res.model.volume(order=4),
                        "evaluations": res.evaluations, "converged": res.converged,
                        "message": res.message, "history": res.history,
                        "time_s": time.perf_counter() - t0}
