@@ -40,6 +40,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
                     tol: float = 1e-5, step_tol_mm: float = 1e-3,
                     max_step_mm: float = 1.0, memory: int = 10,
                     metric: NDArray | None = None,
+                    admissible: Callable[[NDArray], bool] | None = None,
                     bounds_mm: NDArray | None = None,
                     callback: Callable[[int, float], None] | None = None,
                     min_volume_fraction: float = 0.02) -> OptimizeResult:
@@ -71,6 +72,9 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         of the initial model): steepest descent becomes the L2 gradient flow of the surface,
         so every part of it (a pole cap as much as the equator) moves at the speed the energy
         asks for, whatever its parameterization.
+    admissible : callable(params) -> bool, optional
+        A step to parameters for which this is False is shortened like one that does not
+        decrease the energy (the pipeline uses it to keep the quadrature resolved).
     bounds_mm : ndarray (3,), optional
         Extent of the volume in mm; a control point farther than one extent outside it means
         the snake escaped (SegmentationError).
@@ -120,23 +124,21 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         if slope == 0.0:
             converged, message = True, "zero gradient"
             break
-        move = displacement(d)
-        if not s_list:
-            # No curvature information yet (first step, or the energy is concave along the
-            # path, as it is while a surface is being pulled towards an edge): the direction
-            # carries no step length, so try the largest allowed one; Armijo shortens it.
-            t = max_step_mm / move if move > 0 else 1.0
-        else:
-            t = min(1.0, max_step_mm / move) if move > 0 else 1.0
-        for _ in range(30):  # Armijo backtracking
-            x_new = x + t * d
-            f_new, g_new = fun(x_new)
-            if f_new <= f + 1e-4 * t * slope:
-                break
-            t *= 0.5
-        else:
-            converged, message = True, "no further decrease along the search direction"
+        found = _line_search(fun, x, f, d, slope, bool(s_list), max_step_mm, displacement,
+                             admissible)
+        if found is None and s_list:
+            # The quasi-Newton direction only leads to refused shapes (a fold): forget the
+            # curvature pairs and follow the plain L2 gradient flow from here.
+            s_list.clear()
+            y_list.clear()
+            d = -precondition(g)
+            slope = float(np.sum(g * d))
+            found = _line_search(fun, x, f, d, slope, False, max_step_mm, displacement,
+                                 admissible)
+        if found is None:
+            converged, message = True, "no further admissible decrease"
             break
+        x_new, f_new, g_new = found
         s, y = x_new - x, g_new - g
         if float(np.sum(s * y)) > 1e-12 * float(np.sqrt(np.sum(s * s) * np.sum(y * y))):
             s_list.append(s)
@@ -159,6 +161,26 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     final = model.with_params(x)
     _check_surface(final, v0, bounds_mm, min_volume_fraction)
     return OptimizeResult(final, f, it, nfev, converged, message, history)
+
+
+def _line_search(fun, x, f, d, slope, have_curvature, max_step_mm, displacement, admissible):
+    """Armijo backtracking along d, capped in surface displacement; None if nothing works."""
+    move = displacement(d)
+    if not have_curvature:
+        # No curvature information yet (first step, or the energy is concave along the path,
+        # as it is while a surface is pulled towards an edge): the direction carries no step
+        # length, so try the largest allowed one; Armijo shortens it.
+        t = max_step_mm / move if move > 0 else 1.0
+    else:
+        t = min(1.0, max_step_mm / move) if move > 0 else 1.0
+    for _ in range(30):
+        x_new = x + t * d
+        if admissible is None or admissible(x_new):
+            f_new, g_new = fun(x_new)
+            if f_new <= f + 1e-4 * t * slope:
+                return x_new, f_new, g_new
+        t *= 0.5
+    return None
 
 
 def _displacement_operator(model: SplineSurface, per_interval: int = 4) -> NDArray:
