@@ -29,7 +29,7 @@ Guarantees, in the order they matter to someone running hundreds of scans:
   cluster instead of the local process pool.
 
 Each case's outputs go to ``output_dir/<case name>/``. The function that runs one case is
-:func:`run_case` (which calls :func:`segsnake.pipeline.segment_file`); another can be named with
+:func:`run_case` (which calls :func:`segsnake.runner.segment_file`); another can be named with
 ``runner="package.module:function"`` or ``"/path/to/file.py:function"``: it receives the case dict
 (``name``, ``image``, ``truth``, ``out_dir``, ``config``, ``overwrite``) and returns a JSON-able
 summary dict.
@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import ctypes
 import dataclasses
 import datetime as _dt
 import hashlib
@@ -56,6 +55,7 @@ import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections import deque
@@ -93,7 +93,10 @@ LOCK_NAME = ".segsnake-batch.lock"
 
 TOP_KEYS = ("output_dir", "defaults", "cases")
 CASE_KEYS = ("name", "image", "truth")
-METRIC_KEYS = ("dice", "jaccard", "hd95_mm", "assd_mm")
+METRIC_KEYS = ("dice", "jaccard", "hd95_mm", "assd_mm", "volume_difference_rel")
+# Result column -> the summary keys it is read from, first found wins (segsnake.metrics names the
+# 95th-percentile Hausdorff distance "hausdorff95_mm").
+_SUMMARY_ALIASES = {"hd95_mm": ("hd95_mm", "hausdorff95_mm")}
 RESULT_COLUMNS = (
     "case", "status", *METRIC_KEYS, "iterations", "energy", "time_s", "exit_code", "error_type",
     "error", "image", "truth", "out_dir", "host", "finished", "timings",
@@ -243,7 +246,7 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
         errors.append(f"{locate(src, data, 'cases')}: cases: must be a list ('- image: ...' items)")
         cases_raw = []
 
-    first_line: dict[str, str] = {}
+    first_line: dict[str, int] = {}
     valid_case_keys = CASE_KEYS + SegmentConfig.keys()
     for index, raw in enumerate(cases_raw):
         where_case = locate(src, cases_raw, index)
@@ -267,11 +270,11 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
             errors.append(f"{locate(src, raw, 'truth')}: truth: must be a file path or null")
             bad = True
         name = raw.get("name")
+        name_key = "name" if "name" in raw else "image"
         if name is None and isinstance(image, str) and image:
             name = _stem(image)
-            where_name = locate(src, raw, "image")
-        else:
-            where_name = locate(src, raw, "name")
+        where_name = locate(src, raw, name_key)
+        name_line = raw.key_marks.get(name_key, raw.mark or (0, 0))[0]
         if isinstance(name, (int, float)) and not isinstance(name, bool):
             name = str(name)
         if not isinstance(name, str) or not _NAME_RE.match(name):
@@ -280,10 +283,12 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
                               "'.', '_', '+' or '-' (it becomes a directory name)")
             bad = True
         elif name in first_line:
-            errors.append(f"{where_name}: duplicate case name {name!r} (first at {first_line[name]})")
+            hint = "" if name_key == "name" else "; give the cases a 'name:'"
+            errors.append(f"{where_name}: duplicate case name {name!r} "
+                          f"(first used at line {first_line[name]}{hint})")
             bad = True
         else:
-            first_line[name] = where_name.rsplit(":", 2)[-2] and f"line {where_name.rsplit(':', 2)[-2]}"
+            first_line[name] = name_line
         # Merge: defaults first, then the case's own options; positions come along so an error
         # names the line the offending value was written on.
         merged = LineDict()
@@ -305,15 +310,21 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
             if config.prior else config
         cases.append(BatchCase(
             name=name,
-            image=str(base / Path(image).expanduser()),
-            truth=str(base / Path(truth).expanduser()) if truth else None,
+            image=os.path.abspath(base / Path(image).expanduser()),
+            truth=os.path.abspath(base / Path(truth).expanduser()) if truth else None,
             config=config,
             line=raw.mark[0] if raw.mark else None,
         ))
 
     if errors:
-        # One line: the first problem, and how many more there are.
-        unique = list(dict.fromkeys(errors))
+        # One line: the first problem in file order, and how many more there are.
+        position = re.compile(re.escape(src) + r":(\d+):(\d+): ")
+
+        def order(message: str) -> tuple[int, int]:
+            m = position.match(message)
+            return (int(m.group(1)), int(m.group(2))) if m else (1 << 30, 0)
+
+        unique = sorted(dict.fromkeys(errors), key=order)
         more = f" (and {len(unique) - 1} more problem{'s' if len(unique) > 2 else ''})" \
             if len(unique) > 1 else ""
         raise ConfigError(unique[0] + more)
@@ -326,7 +337,7 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
 
 
 def run_case(case: dict[str, Any]) -> dict[str, Any]:
-    """The default runner: segment one case with :func:`segsnake.pipeline.segment_file`.
+    """The default runner: segment one case with :func:`segsnake.runner.segment_file`.
 
     Parameters
     ----------
@@ -339,7 +350,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     dict
         The pipeline's JSON-able summary.
     """
-    from segsnake.pipeline import segment_file  # lazily: a light import for the parent process
+    from segsnake.runner import segment_file  # lazily: a light import for the parent process
 
     config = SegmentConfig.from_mapping(case["config"], source=f"case {case['name']}")
     return segment_file(case["image"], case["out_dir"], config, truth_path=case.get("truth"),
@@ -419,9 +430,9 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, bool) or value is None or isinstance(value, str):
         return value
     if isinstance(value, int):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
+        return int(value)
+    if isinstance(value, float):  # also numpy.float64, a float subclass: make it a plain float
+        return float(value) if math.isfinite(value) else None
     if hasattr(value, "item") and callable(value.item):  # numpy scalars
         try:
             return _jsonable(value.item())
@@ -480,8 +491,10 @@ def _ok_record(case: dict[str, Any], summary: Any, time_s: float) -> dict[str, A
         summary = {"result": summary}
     record.update(status="ok", error=None, error_type=None, exit_code=0)
     for key in (*METRIC_KEYS, "iterations", "energy"):
-        if key in summary:
-            record[key] = summary[key]
+        for source in _SUMMARY_ALIASES.get(key, (key,)):
+            if source in summary:
+                record[key] = summary[source]
+                break
     record["time_s"] = round(time_s, 3)
     if isinstance(summary.get("timings"), dict):
         record["timings"] = summary["timings"]
@@ -511,11 +524,6 @@ def execute_case(runner: str, case: dict[str, Any], sys_path: list[str] | None =
             path = case.get(role)
             if path is not None and not os.path.exists(path):
                 raise InputError(f"{path}: {role} file not found")
-            if path is not None and os.path.isdir(path) and not path.endswith(".dcm"):
-                # A directory could be a DICOM series for some runner; only refuse plain dirs
-                # when the default runner (NIfTI) is used.
-                if runner == DEFAULT_RUNNER:
-                    raise InputError(f"{path}: {role} is a directory, not an image file")
         if case.get("out_dir"):
             try:
                 os.makedirs(case["out_dir"], exist_ok=True)
@@ -531,24 +539,32 @@ def execute_case(runner: str, case: dict[str, Any], sys_path: list[str] | None =
         return failure_record(case, exc, time_s=time.perf_counter() - start)
 
 
-def _die_with_parent() -> None:
-    """Linux: get SIGKILL when the parent goes (so a killed batch leaves no orphan cases running)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        parent = os.getppid()
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-        if os.getppid() != parent:  # the parent died before prctl took effect
-            os._exit(1)
-    except (OSError, AttributeError):  # best effort only
-        pass
+def _die_with_batch(alive: multiprocessing.connection.Connection) -> None:
+    """End this case process as soon as the batch process is gone (killed, crashed).
+
+    ``alive`` is the read end of a pipe whose only write end stays in the batch process, so it
+    reads EOF exactly when that process dies. (PR_SET_PDEATHSIG would not do: a forkserver child's
+    parent is the fork server, which itself stays up while any of its children runs.) Otherwise a
+    killed batch would leave orphans writing outputs while ``--resume`` redoes the same cases.
+    """
+
+    def watch() -> None:
+        try:
+            alive.recv_bytes()  # never sent: returns only by EOF (or error) when the batch died
+        except (EOFError, OSError):
+            pass
+        except BaseException:  # noqa: BLE001 - never let the watchdog itself kill the case
+            return
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="segsnake-batch-watchdog", daemon=True).start()
 
 
 def _child_main(runner: str, case: dict[str, Any], sys_path: list[str],
-                conn: multiprocessing.connection.Connection) -> None:
+                conn: multiprocessing.connection.Connection,
+                alive: multiprocessing.connection.Connection) -> None:
     """Entry point of the one process that runs one case."""
-    _die_with_parent()
+    _die_with_batch(alive)
     record = execute_case(runner, case, sys_path)
     with contextlib.suppress(Exception):
         conn.send(record)
@@ -705,16 +721,32 @@ def _locked(out_dir: Path) -> Iterator[None]:
 # --------------------------------------------------------------------------------------------------
 
 
-def _mp_context() -> mp.context.BaseContext:
+def _mp_context(runner: str) -> mp.context.BaseContext:
     """``forkserver`` where available: a clean, thread-safe fork of a small server that has the
     heavy modules preloaded (each case then starts in milliseconds); ``spawn`` otherwise."""
-    if "forkserver" in mp.get_all_start_methods():
-        ctx = mp.get_context("forkserver")
-        # Only effective before the server starts; modules that fail to import are skipped.
-        ctx.set_forkserver_preload(["numpy", "scipy.ndimage", "nibabel", "segsnake.config",
-                                    "segsnake.batch", "segsnake.pipeline"])
-        return ctx
-    return mp.get_context("spawn")
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    ctx = mp.get_context("forkserver")
+    preload = ["numpy", "scipy.ndimage", "nibabel", "segsnake.errors", "segsnake.config",
+               "segsnake.batch"]
+    # The runner's modules too (the pipeline pulls in the heavy imaging stack), but only those that
+    # import cleanly here: the server skips ImportError, yet any other exception would kill it.
+    module_name = runner.rpartition(":")[0]
+    if runner == DEFAULT_RUNNER:
+        candidates = ["segsnake.io", "segsnake.metrics", "segsnake.pipeline", "segsnake.runner"]
+    elif module_name and not module_name.endswith(".py") and os.sep not in module_name:
+        candidates = [module_name]
+    else:
+        candidates = []
+    for name in candidates:
+        try:
+            importlib.import_module(name)
+            preload.append(name)
+        except Exception:  # noqa: BLE001 - each case will then report the problem itself
+            pass
+    # Only effective before the server first starts (it is one per parent process).
+    ctx.set_forkserver_preload(preload)
+    return ctx
 
 
 @dataclasses.dataclass
@@ -743,16 +775,18 @@ def _describe_exit(code: int | None) -> str:
 def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: float | None,
                on_record: Callable[[dict[str, Any]], None]) -> None:
     """One fresh process per case, at most ``workers`` at a time."""
-    ctx = _mp_context()
+    ctx = _mp_context(runner)
     pending = deque(jobs)
     running: list[_Running] = []
     sys_path = list(sys.path)
+    # Children read EOF on alive_r when this process dies; alive_w never leaves this process.
+    alive_r, alive_w = ctx.Pipe(duplex=False)
     try:
         while pending or running:
             while pending and len(running) < workers:
                 job = pending.popleft()
                 recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child_main, args=(runner, job, sys_path, send),
+                proc = ctx.Process(target=_child_main, args=(runner, job, sys_path, send, alive_r),
                                    name=f"segsnake-case-{job['name']}")
                 proc.start()
                 send.close()  # the child holds the only write end: EOF means it is gone
@@ -776,6 +810,13 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
                         pass
                     r.conn_open = False
                 elapsed = time.monotonic() - r.started
+                if r.record is not None and r.proc.sentinel not in ready:
+                    # The child sent its record and is on its way out; don't wait on a straggler.
+                    r.proc.join(10)
+                    if r.proc.is_alive():
+                        r.proc.kill()
+                        r.proc.join()
+                    ready.add(r.proc.sentinel)
                 if r.proc.sentinel in ready:
                     r.proc.join()
                     if r.record is None and r.conn_open:
@@ -804,17 +845,23 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
             with contextlib.suppress(Exception):
                 r.proc.kill()
                 r.proc.join(5)
+        alive_r.close()
+        alive_w.close()
 
 
-def _run_dask(jobs: list[dict[str, Any]], runner: str, address: str, timeout: float | None,
-              on_record: Callable[[dict[str, Any]], None]) -> None:
-    """The same :func:`execute_case` on an existing ``dask.distributed`` cluster."""
+def _run_dask(jobs: list[dict[str, Any]], runner: str, address: str,
+              on_record: Callable[[dict[str, Any]], None], connect_timeout: float = 30.0) -> None:
+    """The same :func:`execute_case` on an existing ``dask.distributed`` cluster.
+
+    Dask's workers give the isolation (a worker that dies is replaced and its task retried up to
+    the cluster's ``allowed-failures``; then the case is recorded as failed).
+    """
     try:
         from distributed import Client, as_completed
     except ImportError:
         raise ConfigError("--scheduler needs dask.distributed: pip install 'segsnake[dask]'") from None
     try:
-        client = Client(address, timeout="20s", set_as_default=False)
+        client = Client(address, timeout=f"{connect_timeout}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
         raise ConfigError(f"cannot connect to the Dask scheduler at {address}: {_one_line(exc)}") from None
     try:
@@ -824,10 +871,10 @@ def _run_dask(jobs: list[dict[str, Any]], runner: str, address: str, timeout: fl
             fut = client.submit(execute_case, runner, job, sys_path, pure=False,
                                 key=f"segsnake-case-{job['name']}-{os.urandom(4).hex()}")
             futures[fut] = job
-        for fut in as_completed(list(futures), timeout=None):
+        for fut in as_completed(list(futures), loop=client.loop):
             job = futures[fut]
             try:
-                record = fut.result(timeout=timeout)
+                record = fut.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker (KilledWorker), cancelled...
                 record = failure_record(job, exc, error_type=type(exc).__name__, exit_code=1)
             on_record(record)
@@ -883,7 +930,8 @@ def _previous(records: list[dict[str, Any]], names: set[str]) -> tuple[list[dict
 def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None = None,
               scheduler: str | None = None, resume: bool = False, overwrite: bool = False,
               runner: str | Callable[..., Any] | None = None, case_timeout: float | None = None,
-              quiet: bool = True, progress_stream: Any = None) -> BatchReport:
+              quiet: bool = True, progress_stream: Any = None, connect_timeout: float = 30.0
+              ) -> BatchReport:
     """Run every case of a batch and record each result as it finishes.
 
     Parameters
@@ -902,11 +950,13 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
         The case function (default :func:`run_case`), as ``"module:function"``,
         ``"/path/file.py:function"`` or a top-level function.
     case_timeout : float, optional
-        Seconds after which a case is stopped and recorded as failed (local pool: killed).
+        Seconds after which a case is killed and recorded as failed (local pool only).
     quiet : bool
         No progress display.
     progress_stream : text stream, optional
         Where progress goes (default stderr).
+    connect_timeout : float
+        Seconds to wait for the Dask scheduler to answer.
 
     Returns
     -------
@@ -971,20 +1021,22 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
             if record.get("status") == "ok":
                 counts["ok"] += 1
                 note = f"{record['case']} ok"
-                if record.get("dice") is not None:
+                if isinstance(record.get("dice"), (int, float)):
                     note += f" dice {record['dice']:.4f}"
                 bar.update(1, note)
             else:
                 failed.append(record["case"])
-                bar.update(1, f"{record['case']} FAILED")
-                if bar.mode == "bar":
-                    bar.message(f"{record['case']}: {record.get('error')}")
+                if bar.mode == "bar":  # the message above the bar, the bar stays short
+                    bar.message(f"{record['case']} FAILED: {record.get('error')}")
+                    bar.update(1, f"{record['case']} FAILED")
+                else:
+                    bar.update(1, f"{record['case']} FAILED: {record.get('error')}")
 
         writer.open()
         try:
             if jobs:
                 if scheduler:
-                    _run_dask(jobs, runner_name, scheduler, case_timeout, on_record)
+                    _run_dask(jobs, runner_name, scheduler, on_record, connect_timeout)
                 else:
                     _run_local(jobs, runner_name, n_workers, case_timeout, on_record)
         finally:

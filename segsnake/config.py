@@ -87,20 +87,28 @@ class _Loader(yaml.SafeLoader):
 
 
 def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> LineDict:
-    loader.flatten_mapping(node)  # resolve YAML merge keys (<<) first
-    data = LineDict()
-    data.mark = _mark(node)
-    for key_node, value_node in node.value:
+    # A key written twice is a mistake (PyYAML would silently keep the last); a key that overrides
+    # one brought in by a merge key (<<: *anchor) is not, so check duplicates before merging.
+    own: dict[Any, tuple[int, int]] = {}
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":
+            continue
         key = loader.construct_object(key_node, deep=True)
         try:
             hash(key)
         except TypeError:
             raise yaml.constructor.ConstructorError(
                 None, None, "a mapping key must be a plain value", key_node.start_mark) from None
-        if key in data:
-            line, _ = data.key_marks[key]
+        if key in own:
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r} (first given at line {line})", key_node.start_mark)
+                None, None, f"duplicate key {key!r} (first given at line {own[key][0]})",
+                key_node.start_mark)
+        own[key] = _mark(key_node)
+    loader.flatten_mapping(node)  # merged pairs first, then the mapping's own (which win)
+    data = LineDict()
+    data.mark = _mark(node)
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
         data[key] = loader.construct_object(value_node, deep=True)
         data.key_marks[key] = _mark(key_node)
     return data
@@ -333,10 +341,11 @@ PATH_KEYS = ("prior",)
 class SegmentConfig:
     """Every option of ``segsnake segment``; field names are a contract shared with the CLI and YAML.
 
-    Coordinates (``center``, ``axis_start``, ``axis_end``, ``seed_point``) are in mm of scaled index
-    space (``p = (i sx, j sy, k sz)``) unless ``world`` is true, in which case they are NIfTI world
-    coordinates. ``radii`` and ``radius`` are in mm. ``None`` means "choose automatically / model
-    default".
+    Positions (``center``, ``axis_start``, ``axis_end``, ``seed_point``) are voxel indices
+    ``(i, j, k)`` along the array axes and lengths (``radii``, ``radius``) are in voxels, as the
+    ``segment`` flags take them; with ``world`` true they are NIfTI world millimetres instead
+    (:func:`segsnake.pipeline.initial_model` converts either to mm of scaled index space).
+    ``scale`` is in mm. ``None`` means "choose automatically / model default".
     """
 
     shape: str = "sphere"

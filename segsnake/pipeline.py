@@ -33,7 +33,7 @@ from scipy import ndimage
 from segsnake.energy import FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, InputError, SegmentationError
 from segsnake.optimize import minimize_energy
-from segsnake.priors import AffinePrior
+from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
 __all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
@@ -239,34 +239,32 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     timings["edge_map_s"] = time.perf_counter() - t0
     report("edge map", 0.15)
 
-    # Capture schedule: from half the initial size down to ~2 mm (or the detector scale).
-    r0 = _model_radius(model)
-    floor = max(em.smooth_mm, 1.5)
-    sigmas = []
-    s = r0
-    while config.coarse_to_fine and s > floor * 1.5:
-        sigmas.append(s)
-        s *= 0.5
-    sigmas.append(floor)
-
     history: list[dict[str, Any]] = []
     total_iter = 0
     bounds = (np.asarray(shape) - 1) * np.asarray(sp)
     t_opt = 0.0
     t_lookup = 0.0
-    n_stages = len(sigmas) + 1
-    for i, sigma in enumerate(sigmas):
-        t0 = time.perf_counter()
-        f_s = ndimage.gaussian_filter(em.f, [sigma / x for x in sp], mode="constant")
-        lookup = Lookup.from_field(f_s, sp)
-        t_lookup += time.perf_counter() - t0
-        # Steps of at most half the ridge width: the surface follows the gradient flow.
-        band = 0.5 * sigma
-        model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, band, sigma)
-        t_opt += res["time_s"]
-        total_iter += res["iterations"]
-        history.append({"stage": f"capture sigma={sigma:.2f}mm", **res})
-        report("snake", 0.15 + 0.8 * (i + 1) / n_stages)
+
+    # Capture: the flux of -grad(d), d the distance to the detected edges (smoothed so it can
+    # be differentiated). Every patch of the surface is pulled towards its nearest edge with
+    # unit strength whatever the distance, so the reach does not depend on a smoothing scale
+    # (a wide Gaussian ridge collapses snakes in objects thinner than its width). Its minimum
+    # sits about two smoothing widths inside the edge; the refinement takes it from there.
+    t0 = time.perf_counter()
+    capture_sigma = max(em.smooth_mm, 1.5)
+    dist = ndimage.distance_transform_edt(~em.mask, sampling=sp).astype(np.float32)
+    f_d = ndimage.gaussian_filter(-dist, [capture_sigma / x for x in sp], mode="nearest")
+    del dist
+    lookup = Lookup.from_field(f_d, sp)
+    del f_d
+    t_lookup += time.perf_counter() - t0
+    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, capture_sigma,
+                            capture_sigma, tol=1e-4)
+    t_opt += res["time_s"]
+    total_iter += res["iterations"]
+    history.append({"stage": f"capture (edge distance, sigma={capture_sigma:.2f}mm)", **res})
+    report("snake", 0.55)
+    sigmas = [capture_sigma]
 
     # Refinement: flux of f times the outward-oriented detected normal.
     t0 = time.perf_counter()
@@ -286,7 +284,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         polarity = "none" if config.feature == "edge" else "sheet"
     lookup = Lookup.from_vector_field(*(em.f * o for o in out), spacing=sp)
     t_lookup += time.perf_counter() - t0
-    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, 0.5 * em.smooth_mm,
+    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, em.smooth_mm,
                             min(em.smooth_mm, scale))
     t_opt += res["time_s"]
     total_iter += res["iterations"]
@@ -323,7 +321,7 @@ def longest_interval(model: SplineSurface, params: NDArray | None = None) -> flo
 
 
 def quadrature_order(interval_mm: float, feature_mm: float) -> int:
-    """Gauss-Legendre nodes per knot interval so that nodes are at most feature_mm / 2 apart.
+    """Gauss-Legendre nodes per knot interval so that nodes are at most 0.75 feature_mm apart.
 
     The integrand varies on the scale of the lookup's features. An under-resolved quadrature is
     not just inaccurate: the optimizer *exploits* it (it grows a spike whose few nodes all sit
@@ -331,10 +329,10 @@ def quadrature_order(interval_mm: float, feature_mm: float) -> int:
     ball). So the order is chosen for intervals up to ``interval_mm`` and the stage refuses
     steps that make an interval longer (:func:`_run_stage`).
     """
-    return int(np.clip(np.ceil(interval_mm / (0.5 * feature_mm)), 4, 48))
+    return int(np.clip(np.ceil(interval_mm / (0.75 * feature_mm)), 4, 48))
 
 
-def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm):
+def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None):
     """Minimize one stage's energy; the quadrature is re-chosen whenever the surface outgrows it.
 
     A stage runs in rounds: each picks the quadrature order for intervals up to 1.5 times the
@@ -348,7 +346,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         order = quadrature_order(max_interval, feature_mm)
         energy = _stage_energy(model, lookup, weight, order, extra_energy)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
-                              tol=max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
+                              tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
                               admissible=_Admissible(model, max_interval))
         model = res.model
         iterations += res.iterations
@@ -395,14 +393,12 @@ def _stage_energy(model, lookup, weight, order, extra_energy):
     flux = FluxTerm(model, lookup, weight=weight, order=order)
     terms = [flux]
     if REGULARIZATION > 0:
-        # Internal energy: distance to the nearest ellipsoid (affine sphere prior; for the
-        # cylinder, to the nearest elliptic cylinder), scaled so that a deviation of the whole
-        # surface by its own radius costs REGULARIZATION times the stage's image energy.
+        # Internal energy: bending of the deviation from the nearest ellipsoid (elliptic
+        # cylinder), scaled so that a deviation of the size of the surface's radius costs about
+        # REGULARIZATION times the stage's image energy.
         e0 = abs(flux.value_and_grad(model.params)[0])
         r = _model_radius(model)
-        ref = SphereModel.unit(model.m1, model.m2) if model.kind == "sphere" else \
-            CylinderModel.unit(model.m1, model.m2)
-        terms.append(AffinePrior(model, ref, weight=REGULARIZATION * max(e0, 1e-12) / r ** 2))
+        terms.append(BendingRegularizer(model, weight=REGULARIZATION * max(e0, 1e-12) / r ** 2))
     if extra_energy is not None:
         terms.append(extra_energy(model))
     return SumEnergy(terms)

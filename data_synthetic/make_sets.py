@@ -1,0 +1,185 @@
+#!/usr/bin/env python3
+"""Regenerate the standard synthetic sets described in ``data_synthetic/sets.yaml``.
+
+Usage::
+
+    .venv/bin/python data_synthetic/make_sets.py [--out DIR] [--set NAME ...] [--jobs N]
+                                                 [--limit N] [--list] [--overwrite]
+
+Writes ``DIR/<set>/<name>/{image.nii.gz, truth.nii.gz, phantom.json}`` for every volume of the
+chosen sets (default: all, into ``out/synthetic`` at the repository root, which git ignores), and
+``DIR/<set>/cases.yaml``: a ``segsnake batch`` file listing each volume's image, truth and the
+phantom's suggested initialisation. Generation is deterministic (the recipes fix every seed), so
+the volumes are not kept in git. Existing volumes are skipped unless ``--overwrite`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any, Iterator
+
+import yaml
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+if str(ROOT) not in sys.path:  # run as a script from a checkout
+    sys.path.insert(0, str(ROOT))
+
+from segsnake.commands.phantom import OUTPUT_NAMES, write_phantom  # noqa: E402
+from segsnake.errors import ConfigError, SegsnakeError  # noqa: E402
+from segsnake.phantoms import make_phantom, phantom_options  # noqa: E402
+
+RECIPES = HERE / "sets.yaml"
+DEFAULT_OUT = ROOT / "out" / "synthetic"
+SET_KEYS = {"description", "kind", "seed", "options", "vary", "name"}
+
+
+def load_sets(path: str | os.PathLike[str] = RECIPES) -> dict[str, dict[str, Any]]:
+    """Read and check the recipes: known keys, options the phantom kind accepts, list values."""
+    with open(path, encoding="utf-8") as fh:
+        doc = yaml.safe_load(fh)
+    if not isinstance(doc, dict) or not isinstance(doc.get("sets"), dict):
+        raise ConfigError(f"{path}: expected a mapping with 'sets:'")
+    sets = doc["sets"]
+    for name, spec in sets.items():
+        if not isinstance(spec, dict):
+            raise ConfigError(f"{path}: set {name!r} must be a mapping")
+        unknown = set(spec) - SET_KEYS
+        if unknown:
+            raise ConfigError(f"{path}: set {name!r}: unknown key(s) {sorted(unknown)}")
+        if "kind" not in spec or "name" not in spec:
+            raise ConfigError(f"{path}: set {name!r} needs 'kind' and 'name'")
+        accepted = set(phantom_options(spec["kind"])) | {"seed"}
+        given = set(spec.get("options") or {}) | set(spec.get("vary") or {})
+        bad = given - accepted
+        if bad:
+            raise ConfigError(f"{path}: set {name!r}: {spec['kind']} does not take {sorted(bad)}")
+        for key, values in (spec.get("vary") or {}).items():
+            if not isinstance(values, list) or not values:
+                raise ConfigError(f"{path}: set {name!r}: vary.{key} must be a non-empty list")
+    return sets
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return "x".join(_fmt(v) for v in value)
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
+
+
+def expand(spec: dict[str, Any]) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(volume name, seed, phantom options) for every combination of the varied values."""
+    vary = spec.get("vary") or {}
+    keys = list(vary)
+    for combo in itertools.product(*(vary[k] for k in keys)):
+        values = dict(zip(keys, combo))
+        options = dict(spec.get("options") or {})
+        options.update({k: v for k, v in values.items() if k != "seed"})
+        seed = int(values.get("seed", spec.get("seed", 0)))
+        fields = {k: _fmt(v) for k, v in values.items()}
+        fields.update({f"{k}_pct": f"{round(float(v) * 100):d}" for k, v in values.items()
+                       if isinstance(v, (int, float)) and not isinstance(v, bool)})
+        yield spec["name"].format(**fields), seed, options
+
+
+def _make_one(kind: str, seed: int, options: dict[str, Any], out_dir: str,
+              overwrite: bool) -> tuple[str, float, dict[str, Any]]:
+    """Generate and write one volume (in a worker process); returns (dir, seconds, init)."""
+    t0 = time.perf_counter()
+    ph = make_phantom(kind, seed=seed, **options)
+    write_phantom(ph, out_dir, overwrite=overwrite)
+    return out_dir, time.perf_counter() - t0, ph.init
+
+
+def _read_init(case_dir: Path) -> dict[str, Any]:
+    import json  # noqa: PLC0415
+
+    return json.loads((case_dir / "phantom.json").read_text())["init"]
+
+
+def _write_cases(set_dir: Path, names: list[str]) -> Path:
+    """``cases.yaml`` for ``segsnake batch``: one case per volume with its suggested init."""
+    cases = []
+    for name in names:
+        case = {"name": name, "image": f"{name}/image.nii.gz", "truth": f"{name}/truth.nii.gz"}
+        case.update(_read_init(set_dir / name))
+        cases.append(case)
+    text = ("# Generated by data_synthetic/make_sets.py: the phantoms of this set as a batch file.\n"
+            + yaml.safe_dump({"output_dir": "results", "cases": cases}, sort_keys=False,
+                             default_flow_style=None, width=100))
+    path = set_dir / "cases.yaml"
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default=str(DEFAULT_OUT), metavar="DIR",
+                        help=f"output directory (default {DEFAULT_OUT.relative_to(ROOT)}/)")
+    parser.add_argument("--set", dest="sets", action="append", metavar="NAME",
+                        help="set to generate (repeatable; default: all)")
+    parser.add_argument("--recipes", default=str(RECIPES), help="recipes file (default sets.yaml)")
+    parser.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+                        help="volumes generated at once (default 1)")
+    parser.add_argument("--limit", type=int, default=None, metavar="N",
+                        help="only the first N volumes of each set (quick checks)")
+    parser.add_argument("--list", action="store_true", help="list the volumes, generate nothing")
+    parser.add_argument("--overwrite", action="store_true", help="regenerate existing volumes")
+    args = parser.parse_args(argv)
+    try:
+        sets = load_sets(args.recipes)
+        chosen = args.sets or list(sets)
+        missing = [s for s in chosen if s not in sets]
+        if missing:
+            raise ConfigError(f"unknown set(s) {', '.join(missing)} (sets: {', '.join(sets)})")
+        out = Path(args.out)
+        jobs: list[tuple[str, str, int, dict[str, Any], Path]] = []
+        names: dict[str, list[str]] = {}
+        for set_name in chosen:
+            spec = sets[set_name]
+            vols = list(expand(spec))[: args.limit]
+            names[set_name] = [v[0] for v in vols]
+            for name, seed, options in vols:
+                jobs.append((set_name, spec["kind"], seed, options, out / set_name / name))
+        if args.list:
+            for set_name, kind, seed, options, d in jobs:
+                print(f"{set_name}/{d.name}: {kind} seed={seed} {options}")
+            return 0
+        todo = [j for j in jobs if args.overwrite
+                or not all((j[4] / n).exists() for n in OUTPUT_NAMES)]
+        print(f"{len(jobs)} volumes in {len(chosen)} set(s), {len(jobs) - len(todo)} already there",
+              flush=True)
+        t0 = time.perf_counter()
+        calls = [(kind, seed, options, str(d), args.overwrite) for _, kind, seed, options, d in todo]
+        if args.jobs <= 1:
+            results: Iterator[tuple[str, float, dict[str, Any]]] = (_make_one(*c) for c in calls)
+            pool = None
+        else:
+            pool = ProcessPoolExecutor(max_workers=args.jobs)
+            results = (f.result() for f in [pool.submit(_make_one, *c) for c in calls])
+        try:
+            for i, (d, secs, _) in enumerate(results, 1):
+                print(f"[{i}/{len(todo)}] {d} ({secs:.1f} s)", flush=True)
+        finally:
+            if pool is not None:
+                pool.shutdown(cancel_futures=True)
+        for set_name in chosen:
+            _write_cases(out / set_name, names[set_name])
+        print(f"done in {time.perf_counter() - t0:.1f} s: {out}")
+        return 0
+    except SegsnakeError as exc:
+        print(f"make_sets: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

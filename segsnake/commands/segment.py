@@ -1,0 +1,132 @@
+"""``segsnake segment IMAGE --out DIR``: segment one structure with a sphere or cylinder snake."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+HELP = "segment one structure in a 3D image with a spline snake"
+
+
+def _vec3(parser: argparse.ArgumentParser, flag: str, meta: tuple[str, str, str], help: str) -> None:
+    parser.add_argument(flag, nargs=3, type=float, metavar=meta, default=None, help=help)
+
+
+def add_segment_options(parser: argparse.ArgumentParser) -> None:
+    """The options shared by ``segment`` and (as YAML keys) by ``batch`` cases."""
+    g = parser.add_argument_group("initialization (voxel indices along the array axes, or world mm "
+                                  "with --world)")
+    g.add_argument("--shape", choices=("sphere", "cylinder"), default=None,
+                   help="snake topology (default sphere)")
+    _vec3(g, "--center", ("I", "J", "K"), "sphere centre (default: estimated from the image)")
+    _vec3(g, "--radii", ("RI", "RJ", "RK"), "sphere radii (default: half the object's size)")
+    _vec3(g, "--axis-start", ("I", "J", "K"), "cylinder axis start point")
+    _vec3(g, "--axis-end", ("I", "J", "K"), "cylinder axis end point")
+    g.add_argument("--radius", type=float, default=None,
+                   help="cylinder radius (voxels across the axis, or mm with --world)")
+    g.add_argument("--world", action="store_true", default=None,
+                   help="positions and radii are in the image's world millimetres")
+    m = parser.add_argument_group("model and features")
+    m.add_argument("--m1", type=int, default=None, help="control points around (default 9 sphere, 8 cylinder)")
+    m.add_argument("--m2", type=int, default=None, help="control points along (default 9 sphere, 4 cylinder)")
+    m.add_argument("--scale", type=float, default=None, metavar="MM",
+                   help="detector scale in mm (default 1.5 x the largest voxel size)")
+    m.add_argument("--feature", choices=("edge", "surface"), default=None,
+                   help="edge: boundary of a filled object (default); surface: a thin bright sheet")
+    m.add_argument("--polarity", choices=("auto", "bright", "dark", "none"), default=None,
+                   help="edge mode: is the object brighter (bright) or darker than around it")
+    m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
+    _vec3(m, "--seed-point", ("I", "J", "K"), "keep only the detected surface nearest this voxel")
+    m.add_argument("--max-iter", type=int, default=None, help="iteration cap per stage (default 300)")
+    m.add_argument("--volume", type=int, default=None, metavar="N", help="which volume of a 4D image")
+    m.add_argument("--nan", choices=("refuse", "fill"), default=None,
+                   help="NaN/Inf voxels: refuse the image (default) or fill with its minimum")
+    p = parser.add_argument_group("shape prior")
+    p.add_argument("--prior", default=None, metavar="REF.json", help="reference snake (a saved model)")
+    p.add_argument("--prior-weight", type=float, default=None, metavar="W", help="prior weight gamma")
+    p.add_argument("--prior-space", choices=("affine", "linear", "similarity", "translation"),
+                   default=None, help="transformations the prior ignores (default affine)")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser("segment", help=HELP, description=HELP)
+    parser.add_argument("image", metavar="IMAGE", help="NIfTI (.nii, .nii.gz) or NRRD/MHA volume")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    parser.add_argument("--truth", default=None, metavar="MASK",
+                        help="truth mask on the image grid: report Dice, Jaccard, distances")
+    parser.add_argument("--config", default=None, metavar="FILE.yaml",
+                        help="options from a YAML file (flags given here override it)")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--json", action="store_true", help="print one JSON summary on stdout")
+    add_segment_options(parser)
+    parser.set_defaults(func=run)
+    return parser
+
+
+OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "world", "m1", "m2",
+               "scale", "feature", "polarity", "threshold", "seed_point", "max_iter", "volume", "nan",
+               "prior", "prior_weight", "prior_space")
+
+
+def config_from_args(args: argparse.Namespace):
+    """SegmentConfig from defaults < ``--config`` YAML < command-line flags."""
+    from segsnake.config import SegmentConfig, load_segment_config
+
+    base = load_segment_config(args.config) if args.config else SegmentConfig()
+    overrides = {k: getattr(args, k) for k in OPTION_KEYS}
+    if overrides["threshold"] is not None and overrides["threshold"] != "auto":
+        try:
+            overrides["threshold"] = float(overrides["threshold"])
+        except ValueError:
+            from segsnake.errors import ConfigError
+
+            raise ConfigError(f"--threshold must be 'auto' or a number, got {args.threshold!r}") from None
+    return base.replace(**overrides)
+
+
+def progress_reporter(quiet: bool):
+    """A ``progress(stage, fraction)`` callback drawing a 0-100 % bar on stderr, and the bar.
+
+    Call ``bar.close()`` when done (also on failure) so that later output starts on a new line.
+    """
+    from segsnake.progress import ProgressBar
+
+    bar = ProgressBar(100, label="%", quiet=quiet, mode="auto")
+    done = [0]
+
+    def progress(stage: str, fraction: float) -> None:
+        target = int(round(100 * fraction))
+        if target > done[0]:
+            bar.update(target - done[0], note=stage)
+            done[0] = target
+
+    return progress, bar
+
+
+def run(args: argparse.Namespace) -> int:
+    from segsnake.runner import segment_file
+
+    config = config_from_args(args)
+    progress, bar = progress_reporter(args.quiet or args.json)
+    try:
+        summary = segment_file(args.image, args.out, config, truth_path=args.truth,
+                               overwrite=args.overwrite, progress=progress)
+    finally:
+        bar.close()
+    # Warnings (e.g. NaN voxels filled) always reach stderr, even with --quiet or --json: they
+    # say the result was computed on a changed image. They are also in the summary.
+    for w in summary.get("warnings", []):
+        print(f"segsnake segment: warning: {w}", file=sys.stderr)
+    if args.json:
+        json.dump(summary, sys.stdout, default=float)
+        sys.stdout.write("\n")
+    elif not args.quiet:
+        line = (f"segmented {summary['mask_voxels']} voxels ({summary['volume_mm3']:.0f} mm^3) in "
+                f"{summary['timings']['total_s']:.1f} s")
+        if summary.get("dice") is not None:
+            line += f"; Dice {summary['dice']:.4f}, Jaccard {summary['jaccard']:.4f}"
+        print(line)
+        print(f"outputs in {args.out}: mask.nii.gz surface.vtp snake.json qc.png")
+    return 0

@@ -1,0 +1,752 @@
+"""Volume input and output: one Volume type, strict input checks, atomic outputs.
+
+Reading: NIfTI (``.nii``, ``.nii.gz``, Analyze ``.hdr/.img``) through nibabel,
+everything else (``.nrrd``, ``.mha``, ``.mhd``, ...) through SimpleITK, into a
+:class:`Volume` whose ``data[i, j, k]`` is float32 and C-ordered with ``i`` along
+the file's first index axis, ``spacing`` the voxel size in mm (column norms of
+the voxel-to-world affine) and ``affine`` the 4x4 voxel-to-world (RAS+, mm)
+matrix. For SimpleITK inputs (LPS world) the affine is
+``diag(-1, -1, 1) [D diag(spacing) | origin]``, what nibabel would report for
+the same image written as NIfTI.
+
+Every problem with an input is an :class:`~segsnake.errors.InputError` whose
+one-line message starts with the file name: missing or unreadable file, not an
+image, truncated or corrupt (gzip) data, 2D images, 4D images without a
+chosen volume, NaN/Inf voxels (refused unless ``nan="fill"``), zero, negative
+or non-finite spacing, a singular affine, and volumes too large for memory.
+
+Writing: masks and images go back with exactly the reference's shape, affine,
+qform and sform (the NIfTI header is copied, only the data type and scaling
+change), through :func:`atomic_write`: a temporary file in the destination
+directory, renamed when complete; an existing output is kept unless
+``overwrite=True``; a failed write leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gzip
+import os
+import re
+import tempfile
+import warnings
+import zlib
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from segsnake.errors import ConfigError, InputError, OutputError
+
+__all__ = [
+    "Volume",
+    "load_volume",
+    "save_mask",
+    "save_volume",
+    "atomic_write",
+    "check_memory",
+    "check_not_input",
+    "total_memory_bytes",
+    "PIPELINE_BYTES_PER_VOXEL",
+]
+
+# Peak bytes per voxel of load + edge map + lookup, measured by
+# benchmarks/bench_features.py (about 92 at 181 x 217 x 181) with a margin for the snake.
+PIPELINE_BYTES_PER_VOXEL = 160.0
+
+_NIFTI_SUFFIXES = (".nii", ".nii.gz", ".hdr", ".img", ".hdr.gz", ".img.gz")
+_LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
+# Voxel sizes outside this range (mm) are header garbage; they would also turn a scale in mm
+# into kernels of 1e30 voxels downstream.
+_SPACING_RANGE = (1e-6, 1e6)
+
+
+@dataclass
+class Volume:
+    """A 3D image in memory.
+
+    Attributes
+    ----------
+    data : ndarray, float32, shape (nx, ny, nz), C order
+        Voxel values, ``data[i, j, k]``.
+    spacing : tuple of 3 float
+        Voxel size in mm along i, j, k (> 0).
+    affine : ndarray, shape (4, 4)
+        Voxel index to world (RAS+, mm).
+    path : str or None
+        The file it was read from.
+    header : object or None
+        The NIfTI header (nibabel) for NIfTI inputs, else None.
+    warnings : list of str
+        Things the loader changed and the user should be told (``nan="fill"``).
+    source_shape : tuple of int or None
+        The file's full array shape (e.g. ``(nx, ny, nz, 1)``), so a mask can be
+        written with exactly that shape.
+    volume_index : int or None
+        Which volume of a 4D file this is.
+    """
+
+    data: np.ndarray
+    spacing: tuple[float, float, float]
+    affine: np.ndarray
+    path: str | None = None
+    header: object | None = None
+    warnings: list[str] = field(default_factory=list)
+    source_shape: tuple[int, ...] | None = None
+    volume_index: int | None = None
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Array shape (nx, ny, nz)."""
+        return tuple(self.data.shape)  # type: ignore[return-value]
+
+    def index_to_world(self, ijk: np.ndarray) -> np.ndarray:
+        """Voxel indices (N, 3) (or (3,)) to world coordinates (mm, RAS+)."""
+        p = np.asarray(ijk, dtype=np.float64)
+        return p @ self.affine[:3, :3].T + self.affine[:3, 3]
+
+    def world_to_index(self, xyz: np.ndarray) -> np.ndarray:
+        """World coordinates (N, 3) (or (3,)) to continuous voxel indices."""
+        p = np.asarray(xyz, dtype=np.float64)
+        return np.linalg.solve(self.affine[:3, :3], (p - self.affine[:3, 3]).T).T
+
+    def index_to_mm(self, ijk: np.ndarray) -> np.ndarray:
+        """Voxel indices to scaled index space (``(i sx, j sy, k sz)`` mm)."""
+        return np.asarray(ijk, dtype=np.float64) * np.asarray(self.spacing)
+
+    def mm_to_index(self, p: np.ndarray) -> np.ndarray:
+        """Scaled index space (mm) to continuous voxel indices."""
+        return np.asarray(p, dtype=np.float64) / np.asarray(self.spacing)
+
+
+# ---------------------------------------------------------------------------- memory
+def total_memory_bytes() -> int:
+    """Physical memory of this machine in bytes (``os.sysconf``), 0 if unknown."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        return 0
+
+
+def _fmt_bytes(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if n < 1024 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024.0
+    return f"{n:.1f} PB"  # pragma: no cover
+
+
+def check_memory(
+    shape: tuple[int, ...],
+    bytes_per_voxel: float = PIPELINE_BYTES_PER_VOXEL,
+    *,
+    what: str = "volume",
+    total_bytes: int | None = None,
+) -> int:
+    """Estimate the memory a volume needs and refuse it if the machine has less.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Array shape (voxels counted over all of it).
+    bytes_per_voxel : float
+        Peak bytes needed per voxel by the work planned on it.
+    what : str
+        Name used in the message (the file name).
+    total_bytes : int, optional
+        Memory to compare with (default: physical memory, ``os.sysconf``).
+
+    Returns
+    -------
+    int
+        The estimate in bytes.
+
+    Raises
+    ------
+    InputError
+        With the estimate and the ``--crop`` / ``--scale`` advice.
+    """
+    nvox = 1
+    for s in shape:
+        nvox *= max(int(s), 0)
+    estimate = int(nvox * float(bytes_per_voxel))
+    total = total_memory_bytes() if total_bytes is None else int(total_bytes)
+    if total > 0 and estimate > total:
+        dims = "x".join(str(int(s)) for s in shape)
+        raise InputError(
+            f"{what}: a {dims} volume needs about {_fmt_bytes(estimate)} of memory, "
+            f"more than this machine's {_fmt_bytes(total)}; "
+            "reduce it with --crop or a coarser --scale"
+        )
+    return estimate
+
+
+# ---------------------------------------------------------------------------- loading
+def _is_nifti_name(path: str) -> bool:
+    low = path.lower()
+    return low.endswith(_NIFTI_SUFFIXES)
+
+
+def _check_file(path: str) -> None:
+    if not os.path.exists(path):
+        raise InputError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise InputError(f"{path}: is a directory, not an image file")
+    if not os.access(path, os.R_OK):
+        raise InputError(f"{path}: permission denied")
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as fh:
+            head = fh.read(2)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if size == 0:
+        raise InputError(f"{path}: empty file, not an image")
+    if path.lower().endswith(".gz") and head != b"\x1f\x8b":
+        raise InputError(f"{path}: not a gzip file (corrupt or misnamed .gz)")
+
+
+def _one_line(exc: BaseException) -> str:
+    """A reader's exception as one short line (SimpleITK's C++ location prefix removed)."""
+    text = str(exc)
+    for marker in ("sitk::ERROR:", "ITK ERROR:"):
+        if marker in text:
+            text = text.split(marker, 1)[1]
+    text = re.sub(r"^\s*\w+\(0x[0-9a-fA-F]+\):\s*", "", text)
+    msg = " ".join(t.strip() for t in text.splitlines() if t.strip()) or type(exc).__name__
+    return msg[:200]
+
+
+def _spatial_shape(
+    path: str, shape: tuple[int, ...], volume_index: int | None,
+) -> tuple[tuple[int, int, int], int | None]:
+    """Validate dimensions; returns the 3D shape and which volume (None for 3D)."""
+    shp = tuple(int(s) for s in shape)
+    if any(s <= 0 for s in shp):
+        raise InputError(f"{path}: invalid image dimensions {shp}")
+    while len(shp) > 3 and shp[-1] == 1:
+        shp = shp[:-1]
+    if len(shp) < 3 or any(s == 1 for s in shp[:3]):
+        dims = "x".join(str(s) for s in shape)
+        raise InputError(f"{path}: is a 2D image ({dims}); segsnake needs a 3D volume")
+    if len(shp) > 4:
+        raise InputError(
+            f"{path}: has {len(shp)} dimensions {shp}; only 3D or 4D images are supported"
+        )
+    if len(shp) == 4:
+        nvol = shp[3]
+        if volume_index is None:
+            raise InputError(
+                f"{path}: is a 4D image with {nvol} volumes; "
+                f"choose one with --volume N (0..{nvol - 1})"
+            )
+        if not 0 <= int(volume_index) < nvol:
+            raise InputError(f"{path}: --volume {volume_index} is out of range (0..{nvol - 1})")
+        return shp[:3], int(volume_index)  # type: ignore[return-value]
+    if volume_index is not None and int(volume_index) != 0:
+        raise InputError(f"{path}: is a 3D image; --volume {volume_index} does not exist (only 0)")
+    return shp[:3], None  # type: ignore[return-value]
+
+
+def _check_dtype(path: str, dtype: np.dtype) -> None:
+    dtype = np.dtype(dtype)
+    if dtype.kind == "c":
+        raise InputError(
+            f"{path}: complex-valued voxels ({dtype}); segsnake needs a real scalar image"
+        )
+    if dtype.kind not in "biuf" or dtype.fields is not None:
+        raise InputError(f"{path}: voxel type {dtype} is not a real scalar (RGB or vector image?)")
+
+
+def _check_geometry(path: str, affine: np.ndarray) -> tuple[float, float, float]:
+    aff = np.asarray(affine, dtype=np.float64)
+    if aff.shape != (4, 4) or not np.all(np.isfinite(aff)):
+        raise InputError(f"{path}: voxel-to-world affine has non-finite entries")
+    lin = aff[:3, :3]
+    spacing = np.sqrt(np.sum(lin * lin, axis=0))
+    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise InputError(
+            f"{path}: invalid voxel spacing {tuple(float(s) for s in spacing)} (must be > 0)"
+        )
+    if np.any(spacing < _SPACING_RANGE[0]) or np.any(spacing > _SPACING_RANGE[1]):
+        raise InputError(
+            f"{path}: implausible voxel spacing {tuple(float(s) for s in spacing)} mm "
+            f"(expected {_SPACING_RANGE[0]:g} to {_SPACING_RANGE[1]:g} mm)"
+        )
+    # Singular (or numerically singular) direction: columns nearly dependent.
+    cosines = lin / spacing
+    if abs(np.linalg.det(cosines)) < 1e-6:
+        raise InputError(
+            f"{path}: voxel-to-world affine is singular (voxel axes are not independent)"
+        )
+    return tuple(float(s) for s in spacing)  # type: ignore[return-value]
+
+
+def _finish(path: str, arr: np.ndarray, nan: str) -> tuple[np.ndarray, list[str]]:
+    """Check finiteness in the source type, fill if asked, cast to float32 C order."""
+    notes: list[str] = []
+    arr = np.asarray(arr)
+    _check_dtype(path, arr.dtype)
+    if arr.dtype.kind == "f":
+        finite = np.isfinite(arr)
+        bad = int(arr.size - np.count_nonzero(finite))
+        if bad:
+            if nan == "refuse":
+                raise InputError(
+                    f"{path}: {bad} voxels are NaN or Inf; fix the image or use --nan fill "
+                    f"to replace them with the image minimum"
+                )
+            good = arr[finite]
+            if good.size == 0:
+                raise InputError(f"{path}: every voxel is NaN or Inf")
+            fill = good.min()
+            arr = np.where(finite, arr, fill)
+            notes.append(
+                f"{path}: replaced {bad} NaN/Inf voxels with the image minimum {float(fill):g}"
+            )
+        if arr.dtype.itemsize > 4 and arr.size:
+            big = float(np.max(np.abs(arr)))
+            if big > np.finfo(np.float32).max:
+                raise InputError(f"{path}: voxel values up to {big:g} exceed the float32 range")
+    out = np.ascontiguousarray(arr, dtype=np.float32)
+    return out, notes
+
+
+def load_volume(
+    path: str | os.PathLike,
+    *,
+    volume_index: int | None = None,
+    nan: str = "refuse",
+    bytes_per_voxel: float | None = PIPELINE_BYTES_PER_VOXEL,
+) -> Volume:
+    """Read and validate a 3D image.
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``.nii``/``.nii.gz`` (nibabel) or any format SimpleITK reads.
+    volume_index : int, optional
+        Which volume of a 4D image (required when the 4th axis is longer than 1).
+    nan : {"refuse", "fill"}
+        NaN/Inf voxels: refuse the image (default, the message gives the count)
+        or replace them with the minimum of the finite voxels (noted in
+        ``Volume.warnings``).
+    bytes_per_voxel : float or None
+        Memory guard: the image is refused before its data are read if
+        ``voxels x bytes_per_voxel`` exceeds physical memory (None: no check).
+
+    Returns
+    -------
+    Volume
+
+    Raises
+    ------
+    InputError
+        For every problem with the file (one line, naming the file).
+    """
+    if nan not in ("refuse", "fill"):
+        raise ConfigError(f"nan must be 'refuse' or 'fill', got {nan!r}")
+    if volume_index is not None and (isinstance(volume_index, bool) or int(volume_index) < 0):
+        raise ConfigError(f"--volume must be a non-negative integer, got {volume_index!r}")
+    spath = os.fspath(path)
+    _check_file(spath)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            if _is_nifti_name(spath):
+                vol = _load_nibabel(spath, volume_index, nan, bytes_per_voxel)
+            else:
+                vol = _load_sitk(spath, volume_index, nan, bytes_per_voxel)
+    except InputError:
+        raise
+    except MemoryError:
+        raise InputError(
+            f"{spath}: out of memory while reading; reduce it with --crop or a coarser --scale"
+        ) from None
+    except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
+        raise InputError(
+            f"{spath}: truncated or corrupt compressed data ({_one_line(exc)})"
+        ) from None
+    except Exception as exc:  # any reader failure is an unreadable input, never a traceback
+        msg = _one_line(exc)
+        if "damaged" in msg or "Expected" in msg or "mmap" in msg:
+            raise InputError(f"{spath}: truncated or corrupt image data ({msg})") from None
+        raise InputError(f"{spath}: not a readable image ({msg})") from None
+    return vol
+
+
+@contextlib.contextmanager
+def _quiet_nibabel():
+    """nibabel logs header fixes to stderr; the core never prints."""
+    import logging
+
+    logger = logging.getLogger("nibabel.global")
+    old = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(old)
+
+
+def _load_nibabel(path: str, volume_index: int | None, nan: str, bpv: float | None) -> Volume:
+    import nibabel as nib
+    from nibabel.filebasedimages import ImageFileError
+    from nibabel.spatialimages import HeaderDataError
+
+    with _quiet_nibabel():
+        try:
+            img = nib.load(path)
+        except (ImageFileError, HeaderDataError) as exc:
+            raise InputError(f"{path}: not a NIfTI/Analyze image ({_one_line(exc)})") from None
+        if not isinstance(img, nib.spatialimages.SpatialImage):
+            raise InputError(f"{path}: not a volume image")
+        header = img.header
+        _check_dtype(path, header.get_data_dtype())
+        shape3, vidx = _spatial_shape(path, img.shape, volume_index)
+        if bpv is not None:
+            check_memory(shape3, bpv, what=path)
+        _check_raw_pixdim(path, img)
+        affine = np.asarray(img.affine, dtype=np.float64)
+        spacing = _check_geometry(path, affine)
+        dataobj = img.dataobj
+        full = tuple(int(s) for s in img.shape)
+        # Read only the requested volume of a 4D file.
+        if vidx is not None:
+            index = (slice(None),) * 3 + (vidx,) + (0,) * (len(full) - 4)
+            arr = np.asanyarray(dataobj[index])
+        else:
+            arr = np.asanyarray(dataobj).reshape(shape3)
+        if tuple(arr.shape) != shape3:
+            raise InputError(f"{path}: data shape {arr.shape} does not match the header {shape3}")
+    data, notes = _finish(path, arr, nan)
+    return Volume(
+        data=data, spacing=spacing, affine=affine, path=path, header=header.copy(),
+        warnings=notes, source_shape=full, volume_index=vidx,
+    )
+
+
+def _check_raw_pixdim(path: str, img) -> None:
+    """nibabel silently turns zero or negative pixdim into 1 or abs; refuse them instead.
+
+    Only when the pixdims define the geometry (no sform).
+    """
+    hdr = img.header
+    if "sform_code" in hdr and int(hdr["sform_code"]) > 0:
+        return
+    import nibabel as nib
+
+    holder = img.file_map.get("header") or img.file_map.get("image")
+    fname = None if holder is None else holder.filename
+    if fname is None:  # pragma: no cover - loaded from memory
+        return
+    with nib.openers.ImageOpener(fname) as fobj:
+        raw = type(hdr).from_fileobj(fobj, check=False)
+    ndim = min(3, int(raw["dim"][0]) if 0 < int(raw["dim"][0]) <= 7 else 3)
+    pix = np.asarray(raw["pixdim"][1 : 1 + ndim], dtype=np.float64)
+    if not np.all(np.isfinite(pix)) or np.any(pix <= 0):
+        raise InputError(
+            f"{path}: invalid voxel spacing (pixdim) {tuple(float(p) for p in pix)} (must be > 0)"
+        )
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """ITK's MetaIO and friends write diagnostics straight to file descriptor 2; the core never
+    prints, so fd 2 points to /dev/null while SimpleITK reads or writes (errors still raise)."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # pragma: no cover - no stderr at all
+        yield
+        return
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, 2)
+        finally:
+            os.close(devnull)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _load_sitk(path: str, volume_index: int | None, nan: str, bpv: float | None) -> Volume:
+    import SimpleITK as sitk
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(path)
+    try:
+        with _quiet_stderr():
+            reader.ReadImageInformation()
+    except RuntimeError as exc:
+        raise InputError(f"{path}: not a readable image ({_one_line(exc)})") from None
+    dim = int(reader.GetDimension())
+    size = tuple(int(s) for s in reader.GetSize())
+    ncomp = int(reader.GetNumberOfComponents())
+    full = size + ((ncomp,) if ncomp > 1 else ())
+    # Components of a vector image are treated like the volumes of a 4D image.
+    if ncomp > 1 and dim > 3:
+        raise InputError(
+            f"{path}: a {dim}D image with {ncomp} components per voxel is not supported"
+        )
+    shape3, vidx = _spatial_shape(path, full, volume_index)
+    if bpv is not None:
+        check_memory(shape3, bpv, what=path)
+        check_memory(full, 8.0, what=path)  # the whole file is read
+    spacing_itk = np.asarray(reader.GetSpacing(), dtype=np.float64)[:3]
+    origin = np.asarray(reader.GetOrigin(), dtype=np.float64)[:3]
+    direction = np.asarray(reader.GetDirection(), dtype=np.float64).reshape(dim, dim)[:3, :3]
+    if not np.all(np.isfinite(spacing_itk)) or np.any(spacing_itk <= 0):
+        raise InputError(
+            f"{path}: invalid voxel spacing {tuple(float(s) for s in spacing_itk)} (must be > 0)"
+        )
+    affine = np.eye(4)
+    affine[:3, :3] = _LPS_TO_RAS @ direction @ np.diag(spacing_itk)
+    affine[:3, 3] = _LPS_TO_RAS @ origin
+    spacing = _check_geometry(path, affine)
+    try:
+        with _quiet_stderr():
+            image = reader.Execute()
+    except RuntimeError as exc:  # the header was readable, the data are not
+        raise InputError(f"{path}: truncated or corrupt image data ({_one_line(exc)})") from None
+    arr = sitk.GetArrayViewFromImage(image)  # (z, y, x), (z, y, x, c) or (t, z, y, x)
+    if ncomp > 1:
+        arr = arr[..., 0 if vidx is None else vidx]
+    elif arr.ndim == 4:
+        arr = arr[0 if vidx is None else vidx]
+    arr = np.asarray(arr).reshape(tuple(reversed(shape3))).transpose(2, 1, 0)
+    data, notes = _finish(path, arr, nan)
+    if np.shares_memory(data, arr):  # never keep a view into SimpleITK's buffer
+        data = data.copy()
+    del image
+    return Volume(
+        data=data, spacing=spacing, affine=affine, path=path, header=None,
+        warnings=notes, source_shape=shape3, volume_index=vidx,
+    )
+
+
+# ---------------------------------------------------------------------------- writing
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def check_not_input(path: str | os.PathLike, *inputs: str | os.PathLike | None) -> None:
+    """Refuse an output path that names one of the inputs (OutputError)."""
+    out = os.path.realpath(os.fspath(path))
+    for src in inputs:
+        if src is None:
+            continue
+        s = os.fspath(src)
+        same = os.path.realpath(s) == out
+        if not same and os.path.exists(out) and os.path.exists(s):
+            with contextlib.suppress(OSError):
+                same = os.path.samefile(s, out)
+        if same:
+            raise OutputError(
+                f"{os.fspath(path)}: output path is the input file; choose another name"
+            )
+
+
+def atomic_write(
+    path: str | os.PathLike,
+    writer: Callable[[str], object],
+    overwrite: bool = False,
+) -> str:
+    """Write a file atomically: ``writer(tmp_path)`` then rename onto ``path``.
+
+    The temporary file lies in the destination directory and its name keeps
+    the final name as suffix (``.tmp-XXXXXX.<name>``, e.g.
+    ``.tmp-k3j9a1.mask.nii.gz``) so writers that dispatch on the extension
+    work. It is flushed to disk before the rename. On any failure it is
+    removed and an earlier file at ``path`` is left untouched.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Final path.
+    writer : callable
+        Receives the temporary path (an existing empty file) and writes the
+        content there.
+    overwrite : bool
+        Replace an existing file (default: refuse with OutputError).
+
+    Returns
+    -------
+    str
+        The final path.
+
+    Raises
+    ------
+    OutputError
+        Existing file without ``overwrite``, missing or read-only directory,
+        disk full, or any other OS error while writing.
+    """
+    final = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(final))
+    name = os.path.basename(final)
+    if not name:
+        raise OutputError(f"{final}: not a file name")
+    if os.path.isdir(final):
+        raise OutputError(f"{final}: is a directory")
+    if not os.path.isdir(directory):
+        raise OutputError(f"{final}: directory {directory} does not exist")
+    exists = f"{final}: already exists; use --overwrite to replace it"
+    if os.path.lexists(final) and not overwrite:
+        raise OutputError(exists)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="." + name, dir=directory)
+    except OSError as exc:
+        raise OutputError(f"{final}: cannot write in {directory} ({exc.strerror or exc})") from None
+    os.close(fd)
+    try:
+        writer(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        if overwrite:
+            os.replace(tmp, final)
+        else:
+            # link() fails if the name appeared meanwhile: never clobber without --overwrite.
+            try:
+                os.link(tmp, final)
+            except FileExistsError:
+                raise OutputError(exists) from None
+            except OSError:
+                if os.path.lexists(final):
+                    raise OutputError(exists) from None
+                os.replace(tmp, final)  # filesystem without hard links
+            else:
+                os.unlink(tmp)
+    except OutputError:
+        _remove(tmp)
+        raise
+    except OSError as exc:
+        _remove(tmp)
+        raise OutputError(f"{final}: write failed ({exc.strerror or _one_line(exc)})") from None
+    except BaseException:
+        _remove(tmp)
+        raise
+    with contextlib.suppress(OSError):
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    return final
+
+
+def _remove(p: str) -> None:
+    with contextlib.suppress(OSError):
+        os.unlink(p)
+
+
+def _output_array(arr: np.ndarray, reference: Volume) -> np.ndarray:
+    if tuple(arr.shape) != tuple(reference.data.shape):
+        raise ValueError(
+            f"array shape {arr.shape} differs from the reference's {reference.data.shape}"
+        )
+    src = reference.source_shape
+    if src is not None and reference.volume_index is None and len(src) > 3 \
+            and int(np.prod(src)) == arr.size:
+        return arr.reshape(src)  # e.g. (nx, ny, nz, 1): write the input's exact shape
+    return arr
+
+
+def _nifti_image(arr: np.ndarray, reference: Volume, dtype: np.dtype):
+    import nibabel as nib
+
+    hdr = reference.header
+    if isinstance(hdr, (nib.Nifti1Header, nib.Nifti2Header)):
+        klass = nib.Nifti2Image if isinstance(hdr, nib.Nifti2Header) else nib.Nifti1Image
+        h = klass.header_class.from_header(hdr)
+        h.set_data_dtype(dtype)
+        h.set_data_shape(arr.shape)
+        h["scl_slope"] = np.nan
+        h["scl_inter"] = np.nan
+        h.set_intent("none", (), name="")
+        # affine=None: the copied header's qform and sform (codes, values) are written as is.
+        img = klass(arr, None, header=h)
+    else:
+        img = nib.Nifti1Image(arr, reference.affine)
+        img.header.set_qform(reference.affine, code=1)
+        img.header.set_sform(reference.affine, code=1)
+        img.header.set_xyzt_units("mm")
+        img.header.set_data_dtype(dtype)
+    if np.dtype(dtype).kind in "ui":
+        img.header["cal_min"] = 0
+        img.header["cal_max"] = int(arr.max()) if arr.size else 0
+    return img
+
+
+def _sitk_image(arr: np.ndarray, reference: Volume):
+    import SimpleITK as sitk
+
+    a3 = arr.reshape(reference.data.shape)
+    image = sitk.GetImageFromArray(np.ascontiguousarray(a3.transpose(2, 1, 0)))
+    lin = _LPS_TO_RAS @ reference.affine[:3, :3]
+    spacing = np.sqrt(np.sum(lin * lin, axis=0))
+    image.SetSpacing(tuple(float(s) for s in spacing))
+    image.SetDirection(tuple(float(d) for d in (lin / spacing).reshape(-1)))
+    image.SetOrigin(tuple(float(o) for o in _LPS_TO_RAS @ reference.affine[:3, 3]))
+    return image
+
+
+def _save(arr: np.ndarray, reference: Volume, path, overwrite: bool, dtype) -> None:
+    spath = os.fspath(path)
+    check_not_input(spath, reference.path)
+    out = _output_array(arr, reference)
+    if _is_nifti_name(spath):
+        import nibabel as nib
+
+        img = _nifti_image(out, reference, dtype)
+
+        def writer(tmp: str) -> None:
+            nib.save(img, tmp)
+    else:
+        import SimpleITK as sitk
+
+        image = _sitk_image(out, reference)
+
+        def writer(tmp: str) -> None:
+            with _quiet_stderr():
+                sitk.WriteImage(image, tmp, True)
+    atomic_write(spath, writer, overwrite=overwrite)
+
+
+def save_mask(
+    mask: np.ndarray, reference: Volume, path: str | os.PathLike, *, overwrite: bool = False,
+) -> None:
+    """Write a binary mask (uint8 0/1) on the reference's grid.
+
+    Parameters
+    ----------
+    mask : ndarray, bool or integer, shape = reference.data.shape
+        Non-zero voxels become 1.
+    reference : Volume
+        The image the mask belongs to: shape, affine, qform and sform (with
+        their codes) are copied exactly (a singleton 4th axis too).
+    path : str or path-like
+        ``.nii``/``.nii.gz`` (nibabel) or another SimpleITK format (geometry
+        converted back to LPS).
+    overwrite : bool
+        Replace an existing file.
+
+    Raises
+    ------
+    OutputError
+        Output exists (without overwrite), is the input file, or cannot be written.
+    """
+    m = np.asarray(mask)
+    data = (m != 0).astype(np.uint8)
+    _save(data, reference, path, overwrite, np.uint8)
+
+
+def save_volume(
+    data: np.ndarray, reference: Volume, path: str | os.PathLike, *, overwrite: bool = False,
+) -> None:
+    """Write a float32 image on the reference's grid (same geometry rules as :func:`save_mask`)."""
+    arr = np.ascontiguousarray(np.asarray(data, dtype=np.float32))
+    _save(arr, reference, path, overwrite, np.float32)

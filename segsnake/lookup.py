@@ -1,0 +1,288 @@
+"""The pre-integrated lookup volume that turns the flux energy into a surface integral.
+
+For a closed surface S with outward normal, the divergence theorem with the
+field ``(G, 0, 0)`` gives
+
+    flux of grad f through S = volume integral of lap f inside S
+                             = surface integral over S of G dy^dz,
+
+where ``G(x, y, z) = integral_{-inf}^{x} lap f(tau, y, z) dtau`` (design.md,
+"The energy"). Since the x-integral of ``f_xx`` is ``f_x``, G is built as
+
+    G = f_x + cumulative integral along x of (f_yy + f_zz),
+
+in mm units (x is the first array axis, spacing ``(sx, sy, sz)`` in mm), so
+that ``dG/dx = lap f`` in mm^-2 and the theorem holds in mm. The same
+machinery gives the flux of any vector field v
+(:meth:`Lookup.from_vector_field`, ``G = v_x + cumint(dv_y/dy + dv_z/dz)``) and
+the volume integral of a scalar field (``divergence_of_gradient=False``:
+``G = cumint(f)``).
+
+Discretisation (fourth order everywhere, so that G is accurate to a few 1e-4
+relative on fields a few voxels wide):
+
+- derivatives: five-point central differences (``-1, 8, 0, -8, 1 / 12 h`` and
+  ``-1, 16, -30, 16, -1 / 12 h^2``), edge-replicated within two voxels of
+  the border;
+- the cumulative x-integral: trapezoid rule plus the Euler-Maclaurin end
+  correction ``-h^2/12 (g'(x_i) - g'(x_0))``; the integral starts at the first
+  plane (``G = f_x`` there: nothing is assumed before the volume);
+- interpolation: one cubic B-spline interpolant of the G samples
+  (``scipy.ndimage.spline_filter``, mirror boundary), evaluated with our own
+  vectorised 4x4x4 tensor product that returns the value and its exact
+  gradient, so the energy and its gradient come from one C2 function.
+
+Outside the volume: coordinates are clamped to the grid box
+``[0, (n - 1) s]`` per axis. The mirror-boundary spline has zero slope
+across every face, so the continuation is C1 everywhere. Beyond the +x face G
+is the total x-integral and beyond the -x face G is its value on the first
+plane, both with ``dG/dx = 0``: outside the box ``div grad f`` is taken to be
+0 along x, which is what keeps the divergence theorem meaningful for a surface
+that pokes out through an x face. Beyond a y or z face the face values are
+continued (``dG/dy`` or ``dG/dz = 0``). For every surface the flux is
+exactly the volume integral of ``dG/dx`` of this continued function.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["Lookup", "bspline_weights"]
+
+_D1 = np.array([1.0, -8.0, 0.0, 8.0, -1.0]) / 12.0  # correlate1d weights, first derivative
+_D2 = np.array([-1.0, 16.0, -30.0, 16.0, -1.0]) / 12.0  # second derivative
+_PAD = 2
+
+
+def bspline_weights(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cubic B-spline weights and their derivatives for fractional positions ``u`` in [0, 1].
+
+    Returns
+    -------
+    w, dw : ndarray, shape (N, 4)
+        Weights of the samples at offsets -1, 0, 1, 2 and their derivatives in u.
+    """
+    w, dw = _weights_soa(np.asarray(u, dtype=np.float64))
+    return np.moveaxis(w, 0, -1), np.moveaxis(dw, 0, -1)
+
+
+def _weights_soa(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """bspline_weights with the four weights first: shapes (4, N)."""
+    v = 1.0 - u
+    u2 = u * u
+    u3 = u2 * u
+    w = np.empty((4,) + u.shape)
+    dw = np.empty_like(w)
+    w[0] = v * v * v / 6.0
+    w[1] = (3.0 * u3 - 6.0 * u2 + 4.0) / 6.0
+    w[2] = (-3.0 * u3 + 3.0 * u2 + 3.0 * u + 1.0) / 6.0
+    w[3] = u3 / 6.0
+    dw[0] = -0.5 * v * v
+    dw[1] = 1.5 * u2 - 2.0 * u
+    dw[2] = -1.5 * u2 + u + 0.5
+    dw[3] = 0.5 * u2
+    return w, dw
+
+
+def _mirror_index(m: np.ndarray, n: int) -> np.ndarray:
+    """scipy.ndimage 'mirror' extension: ... 2 1 | 0 1 2 ... n-1 | n-2 n-3 ..."""
+    if n == 1:
+        return np.zeros_like(m)
+    period = 2 * (n - 1)
+    m = np.mod(m, period)
+    return np.where(m > n - 1, period - m, m)
+
+
+def _check_spacing(spacing: Sequence[float]) -> tuple[float, float, float]:
+    sp = tuple(float(s) for s in spacing)
+    if len(sp) != 3 or not all(np.isfinite(s) and s > 0 for s in sp):
+        raise ValueError(f"spacing must be 3 positive finite numbers, got {spacing!r}")
+    return sp  # type: ignore[return-value]
+
+
+def _deriv(a: np.ndarray, axis: int, h: float, order: int) -> np.ndarray:
+    w = _D1 / h if order == 1 else _D2 / (h * h)
+    return ndimage.correlate1d(a, w, axis=axis, mode="nearest", output=np.float64)
+
+
+def _cumint_x(g: np.ndarray, h: float) -> np.ndarray:
+    """4th-order cumulative integral along axis 0 from the first plane (float64, in place on g)."""
+    n = g.shape[0]
+    out = np.empty_like(g, dtype=np.float64)
+    out[0] = 0.0
+    if n == 1:
+        return out
+    np.cumsum(g[1:], axis=0, out=out[1:])
+    out[1:] += np.cumsum(g[:-1], axis=0)
+    out *= 0.5 * h
+    if n >= 3:
+        # Euler-Maclaurin end correction with a second-order derivative of g.
+        dg = np.gradient(g, h, axis=0, edge_order=2)
+        out -= (h * h / 12.0) * (dg - dg[0])
+    return out
+
+
+class Lookup:
+    """Cubic B-spline lookup volume ``G`` with exact value-and-gradient sampling.
+
+    Build it with :meth:`from_field` or :meth:`from_vector_field`; sample it with
+    :meth:`sample`. Points are in scaled index space (mm): voxel ``(i, j, k)``
+    is at ``(i sx, j sy, k sz)``.
+
+    Attributes
+    ----------
+    shape : tuple of int
+        Grid shape.
+    spacing : tuple of float
+        Voxel size in mm.
+    coef : ndarray, float64
+        Spline coefficients, mirror-padded by 2 on every side (C order).
+    """
+
+    def __init__(self, values: np.ndarray, spacing: Sequence[float]) -> None:
+        """Wrap grid samples of G (any real array, shape (nx, ny, nz)) in the interpolant."""
+        values = np.asarray(values, dtype=np.float64)
+        if values.ndim != 3:
+            raise ValueError(f"lookup values must be 3D, got shape {values.shape}")
+        if not np.all(np.isfinite(values)):
+            raise ValueError("lookup values contain NaN or Inf")
+        self.shape = tuple(int(s) for s in values.shape)
+        self.spacing = _check_spacing(spacing)
+        coef = values.copy()
+        for axis, n in enumerate(self.shape):
+            if n > 1:  # a single sample needs no prefilter (and cannot be mirrored)
+                ndimage.spline_filter1d(coef, order=3, axis=axis, mode="mirror", output=coef)
+        ix = [_mirror_index(np.arange(-_PAD, n + _PAD), n) for n in self.shape]
+        self.coef = np.ascontiguousarray(coef[np.ix_(*ix)])
+        pshape = self.coef.shape
+        self._flat = self.coef.reshape(-1)
+        a, b, c = np.meshgrid(np.arange(4), np.arange(4), np.arange(4), indexing="ij")
+        # Flat offsets of the 4x4x4 neighbourhood, in (a, b, c) C order.
+        self._offsets = ((a * pshape[1] + b) * pshape[2] + c).reshape(-1).astype(np.intp)
+        self._pshape = pshape
+
+    # ---------------------------------------------------------------- builders
+    @classmethod
+    def from_field(
+        cls, f: np.ndarray, spacing: Sequence[float], *, divergence_of_gradient: bool = True,
+    ) -> "Lookup":
+        """Lookup for the flux of ``grad f`` (or the volume integral of ``f``).
+
+        Parameters
+        ----------
+        f : ndarray, shape (nx, ny, nz)
+            Scalar field (the edge map).
+        spacing : sequence of 3 float
+            Voxel size in mm.
+        divergence_of_gradient : bool
+            True (default): ``G = f_x + cumint(f_yy + f_zz)``, so the surface
+            integral of ``G dy^dz`` is the flux of ``grad f`` (``dG/dx = lap f``).
+            False: ``G = cumint(f)``, so it is the volume integral of ``f``.
+        """
+        sp = _check_spacing(spacing)
+        f = np.asarray(f)
+        if f.ndim != 3:
+            raise ValueError(f"field must be 3D, got shape {f.shape}")
+        if divergence_of_gradient:
+            base = _deriv(f, 0, sp[0], 1)
+            integrand = _deriv(f, 1, sp[1], 2)
+            integrand += _deriv(f, 2, sp[2], 2)
+        else:
+            base = None
+            integrand = f.astype(np.float64)
+        return cls._from_parts(base, integrand, sp)
+
+    @classmethod
+    def from_vector_field(
+        cls, vx: np.ndarray, vy: np.ndarray, vz: np.ndarray, spacing: Sequence[float],
+    ) -> "Lookup":
+        """Lookup for the flux of a vector field ``v`` (e.g. the smoothed image gradient).
+
+        ``G = v_x + cumint(dv_y/dy + dv_z/dz)``, so ``dG/dx = div v`` and the
+        surface integral of ``G dy^dz`` is the flux of ``v``.
+        """
+        sp = _check_spacing(spacing)
+        vx, vy, vz = (np.asarray(v) for v in (vx, vy, vz))
+        if not (vx.shape == vy.shape == vz.shape) or vx.ndim != 3:
+            raise ValueError("vx, vy, vz must be 3D arrays of one shape")
+        integrand = _deriv(vy, 1, sp[1], 1)
+        integrand += _deriv(vz, 2, sp[2], 1)
+        return cls._from_parts(vx.astype(np.float64), integrand, sp)
+
+    @classmethod
+    def _from_parts(cls, base: np.ndarray | None, integrand: np.ndarray,
+                    spacing: tuple[float, float, float]) -> "Lookup":
+        g = _cumint_x(integrand, spacing[0])
+        del integrand
+        if base is not None:
+            g += base
+        return cls(g, spacing)
+
+    # ---------------------------------------------------------------- sampling
+    def sample(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """G and its exact gradient at continuous points.
+
+        Parameters
+        ----------
+        points_mm : array_like, shape (N, 3) (or (3,))
+            Points in scaled index space (mm).
+
+        Returns
+        -------
+        G : ndarray, shape (N,)
+        dG : ndarray, shape (N, 3)
+            ``(dG/dx, dG/dy, dG/dz)`` per mm; ``dG/dx`` is ``lap f`` (or
+            ``div v``) of the interpolant. A component is 0 along an axis on
+            which the point lies outside the grid box (clamped).
+        """
+        p = np.asarray(points_mm, dtype=np.float64)
+        single = p.ndim == 1
+        p = p.reshape(-1, 3)
+        sp = np.asarray(self.spacing)
+        hi = np.asarray(self.shape, dtype=np.float64)[:, None] - 1.0
+        # Structure of arrays, (3, N): every operation below runs over contiguous rows of N.
+        t = (p / sp).T
+        inside = (t >= 0.0) & (t <= hi)
+        t = np.clip(t, 0.0, hi)
+        t[np.isnan(t)] = 0.0  # NaN points: any valid index; their outputs are set to NaN below
+        i0 = np.minimum(np.floor(t), np.maximum(hi - 1.0, 0.0))
+        u = t - i0
+        i0 = i0.astype(np.intp)
+        ps = self._pshape
+        # Padded index of the first of the four samples along each axis: i0 - 1 + _PAD.
+        base = ((i0[0] + (_PAD - 1)) * ps[1] + (i0[1] + (_PAD - 1))) * ps[2] + (i0[2] + (_PAD - 1))
+        c = np.take(self._flat, self._offsets[:, None] + base, mode="clip").reshape(4, 4, 4, -1)
+        wx, dx = _weights_soa(u[0])
+        wy, dy = _weights_soa(u[1])
+        wz, dz = _weights_soa(u[2])
+        cz = np.einsum("abcn,cn->abn", c, wz)
+        cdz = np.einsum("abcn,cn->abn", c, dz)
+        czy = np.einsum("abn,bn->an", cz, wy)
+        czdy = np.einsum("abn,bn->an", cz, dy)
+        cdzy = np.einsum("abn,bn->an", cdz, wy)
+        g = np.einsum("an,an->n", czy, wx)
+        grad = np.empty((3, g.size))
+        grad[0] = np.einsum("an,an->n", czy, dx)
+        grad[1] = np.einsum("an,an->n", czdy, wx)
+        grad[2] = np.einsum("an,an->n", cdzy, wx)
+        grad *= inside / sp[:, None]
+        grad = grad.T
+        bad = ~np.all(np.isfinite(p), axis=1)
+        if bad.any():  # NaN in, NaN out (a clamped index would return a plausible value)
+            g[bad] = np.nan
+            grad[bad] = np.nan
+        if single:
+            return g[0], grad[0]
+        return g, grad
+
+    def __call__(self, points_mm: np.ndarray) -> np.ndarray:
+        """G only (same as ``sample(points_mm)[0]``)."""
+        return self.sample(points_mm)[0]
+
+    @property
+    def extent_mm(self) -> np.ndarray:
+        """Upper corner of the grid box in mm (the lower one is the origin)."""
+        return (np.asarray(self.shape) - 1) * np.asarray(self.spacing)

@@ -1,0 +1,86 @@
+"""The snake's internal energy: bending of the deviation from the nearest affine reference shape.
+
+``E = w * sum_q W_q ( h_u^4 |r_uu|^2 + 2 h_u^2 h_v^2 |r_uv|^2 + h_v^4 |r_vv|^2 )`` with
+``r = sigma - P sigma`` the residual after the L2 best affine fit of a reference (the unit sphere
+for a sphere snake, the unit cylinder for a cylinder snake) and ``h = 1 / M`` the knot spacing.
+
+* Any affine image of the reference (every ellipsoid, every elliptic cylinder) costs nothing,
+  so unlike a membrane or thin-plate energy it exerts no shrinking force on a round object.
+* A crease or a fold is a large second derivative of the residual over one knot interval: it
+  costs a lot, which is what keeps the flux energies (that a folded surface can lower) honest.
+* The fit is a linear map of the parameters and the reference's images act on each coordinate
+  separately, so ``E = w * sum_d p_d^T K p_d`` with one fixed ``K (P x P)`` per model size:
+  an evaluation is a single small matrix product, the gradient ``2 w K p``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, gauss_legendre_grid
+
+__all__ = ["BendingRegularizer", "bending_matrix"]
+
+_CACHE: dict[tuple[str, int, int, int], NDArray] = {}
+
+
+def _reference(model: SplineSurface) -> SplineSurface:
+    if model.kind == "cylinder":
+        return CylinderModel.unit(model.m1, model.m2)
+    return SphereModel.unit(model.m1, model.m2)
+
+
+def bending_matrix(model: SplineSurface, order: int = 4) -> NDArray:
+    """The matrix ``K`` of the module docstring for the model's kind and size (cached)."""
+    key = (model.kind, model.m1, model.m2, order)
+    if key in _CACHE:
+        return _CACHE[key]
+    u, wu = gauss_legendre_grid(model.m1, order)
+    v, wv = gauss_legendre_grid(model.m2, order)
+    Bu = [model._basis_u(u, k) for k in range(3)]
+    Bv = [model._basis_v(v, k) for k in range(3)]
+    A = model.constraint.toarray()  # (M1 * L, P)
+    W = (wu[:, None] * wv[None, :]).ravel()
+
+    def sampling(ku: int, kv: int) -> NDArray:
+        # Samples of sigma's (ku, kv) derivative at the nodes, per coordinate: (Nq, P).
+        return np.einsum("uk,vl,kl...->uv...", Bu[ku], Bv[kv],
+                         A.reshape(model.m1, model.m2 + 3, -1)).reshape(len(u) * len(v), -1)
+
+    S0 = sampling(0, 0)
+    ref = _reference(model)
+    ref_samples = S0 @ ref.params  # (Nq, 3)
+    X = np.column_stack([ref_samples, np.ones(len(ref_samples))])  # affine fit basis
+    sw = np.sqrt(W)
+    # Weighted least-squares fit of the samples by X: coef = pinv(sw X) (sw S0 p).
+    fit = np.linalg.lstsq(sw[:, None] * X, sw[:, None] * S0, rcond=None)[0]  # (4, P)
+    # Parameters of the fitted affine image: points get the translation, vectors do not.
+    basis_params = np.column_stack([ref.params, (~ref.is_vector).astype(float)])  # (P, 4)
+    R = np.eye(A.shape[1]) - basis_params @ fit  # residual parameters, (P, P)
+    hu, hv = 1.0 / model.m1, 1.0 / model.m2
+    D = np.vstack([hu * hu * sampling(2, 0), np.sqrt(2.0) * hu * hv * sampling(1, 1),
+                   hv * hv * sampling(0, 2)]) * np.tile(sw, 3)[:, None]
+    DR = D @ R
+    K = DR.T @ DR
+    K = 0.5 * (K + K.T)
+    _CACHE[key] = K
+    return K
+
+
+@dataclass
+class BendingRegularizer:
+    """``weight * sum_d p_d^T K p_d`` (see the module docstring); ``value_and_grad(params)``."""
+
+    model: SplineSurface
+    weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        self.K = bending_matrix(self.model)
+
+    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+        Kp = self.K @ params
+        return self.weight * float(np.sum(params * Kp)), 2.0 * self.weight * Kp
