@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["Sampler", "Energy", "FluxTerm", "SumEnergy", "flux_integrand_grads"]
+__all__ = ["Sampler", "Energy", "FluxTerm", "AreaTerm", "SumEnergy", "flux_integrand_grads"]
 
 
 class Sampler(Protocol):
@@ -117,3 +117,31 @@ class SumEnergy:
             values.append(v)
         self.last_terms = values
         return total, grad
+
+
+@dataclass
+class AreaTerm:
+    """``weight * area``: surface tension, ``sum W |sigma_u x sigma_v|`` with its exact gradient.
+
+    With ``n = sigma_v x sigma_u`` and ``m = n / |n|``, ``d|n| = (m x sigma_v) . d sigma_u +
+    (sigma_u x m) . d sigma_v``.
+    """
+
+    model: SplineSurface
+    weight: float = 1.0
+    order: int = 4
+
+    def __post_init__(self) -> None:
+        self.basis, self.weights = self.model.quadrature(self.order)
+
+    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+        C = self.model.control_points(params)
+        _, su, sv = self.basis.evaluate(C)
+        n = np.cross(sv, su)
+        norm = np.linalg.norm(n, axis=-1)
+        m = n / np.maximum(norm, 1e-300)[..., None]
+        w = self.weights[..., None]
+        g_u = w * np.cross(m, sv)
+        g_v = w * np.cross(su, m)
+        grad = self.model.grid_gradient_to_params(self.basis.adjoint(np.zeros_like(su), g_u, g_v))
+        return self.weight * float(np.sum(self.weights * norm)), self.weight * grad

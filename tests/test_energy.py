@@ -96,3 +96,23 @@ def test_minimizing_blob_flux_grows_sphere_to_the_laplacian_zero_crossing():
     r_star = s * np.sqrt(2 * np.log(1 / h0))
     sig, _, _ = res.model.evaluate(np.linspace(0, 1, 20), np.linspace(0, 1, 20))
     assert np.abs(np.linalg.norm(sig, axis=-1) - r_star).max() < 0.02
+
+
+@pytest.mark.parametrize("model", [SphereModel.unit(6, 5), CylinderModel.unit(6, 3)])
+def test_area_term_value_and_gradient(model):
+    from segsnake.energy import AreaTerm
+
+    model = _perturbed(model.transformed(np.diag([2.0, 3.0, 1.5]), [1, 2, 3]), 4, 0.1)
+    term = AreaTerm(model, weight=0.5, order=8)
+    value, grad = term.value_and_grad(model.params)
+    assert abs(value - 0.5 * model.area()) < 1e-9
+    h = 1e-6
+    fd = np.zeros_like(grad)
+    for i in range(grad.shape[0]):
+        for d in range(3):
+            p = model.params.copy()
+            p[i, d] += h
+            ep = term.value_and_grad(p)[0]
+            p[i, d] -= 2 * h
+            fd[i, d] = (ep - term.value_and_grad(p)[0]) / (2 * h)
+    assert np.linalg.norm(grad - fd) / np.linalg.norm(fd) < 1e-6
