@@ -236,8 +236,24 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     seed = None
     if config.seed_point is not None:
         seed = np.asarray(config.seed_point, dtype=float)
-    em = edge_map(image, sp, mode=config.feature, scale_mm=scale,
+    # Thin dark sheets (the CSF around a brain in T1) are thin bright sheets of -image.
+    dark_sheet = config.feature == "surface" and config.polarity == "dark"
+    em = edge_map(-image if dark_sheet else image, sp, mode=config.feature, scale_mm=scale,
                   threshold=config.threshold, seed=seed)
+    # The initial surface lies inside the object (that is the contract of an initialization):
+    # edges it encloses are internal structures (ventricles, vessels), never the boundary.
+    inner = rasterize(model, shape, sp)
+    if inner.any():
+        em.mask &= ~ndimage.binary_dilation(inner)
+        em.f[inner] = 0.0
+    if config.feature == "surface":
+        # A sheet around the object faces its centre (thesis sec. 7.2.2: keep the voxels whose
+        # normal points to the centre); sheets that run radially (sulci, septa) are not it.
+        c, axis = _center_and_axis(model)
+        radial = _radial_field(shape, sp, c, axis)
+        facing = np.abs(sum(em.normals[..., d] * radial[d] for d in range(3))) >= 0.5
+        em.mask &= facing
+        em.f *= ndimage.gaussian_filter(facing.astype(np.float32), [em.smooth_mm / x for x in sp])
     timings["edge_map_s"] = time.perf_counter() - t0
     report("edge map", 0.15)
 
@@ -268,7 +284,10 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     report("snake", 0.55)
     sigmas = [capture_sigma]
 
-    # Refinement: flux of f times the outward-oriented detected normal.
+    # Refinement: the region integral of n_out . grad f (n_out the detected normal, oriented
+    # outward). Its first variation is n_out . grad f on the surface, which vanishes exactly on
+    # the ridge of f. (The flux of f n_out would add f div(n_out) = 2 H f, and its optimum
+    # would sit 2 s^2 H outside the ridge: +15 % volume on a 10 mm ball.)
     t0 = time.perf_counter()
     polarity = config.polarity
     if config.feature == "edge" and polarity in ("auto", "bright", "dark"):
@@ -284,7 +303,9 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         sign = np.where(dot >= 0, np.float32(1), np.float32(-1))
         out = [sign * em.normals[..., d] for d in range(3)]
         polarity = "none" if config.feature == "edge" else "sheet"
-    lookup = Lookup.from_vector_field(*(em.f * o for o in out), spacing=sp)
+    along = sum(o * np.gradient(em.f, h, axis=d) for d, (o, h) in enumerate(zip(out, sp)))
+    lookup = Lookup.from_field(along.astype(np.float32), sp, divergence_of_gradient=False)
+    del along, out
     t_lookup += time.perf_counter() - t0
     model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, em.smooth_mm,
                             min(em.smooth_mm, scale))
@@ -377,7 +398,7 @@ class _Admissible:
         self.start = start
         self.max_interval = max_interval
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
-        v = (np.arange(per_interval * start.m2) + 0.5) / (per_interval * start.m2)
+        v = (np.arange(per_interval, per_interval * (start.m2 - 1)) + 0.5) / (per_interval * start.m2)
         self.basis = start.grid_basis(u, v)
         self.n0 = self._normals(start.params)
 

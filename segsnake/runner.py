@@ -1,14 +1,18 @@
 """One segmentation from files to files: the I/O edge around :func:`segsnake.pipeline.segment_volume`.
 
-``segment_file`` loads and validates the image, refuses outputs that exist (without
-``overwrite``) *before* any work, segments, and writes ``mask.nii.gz``, ``surface.vtp``,
-``snake.json`` and ``qc.png``. Outputs are first written into a staging directory inside the
-output directory and moved into place only when all of them are complete, so a failed run
-leaves no partial file and earlier outputs untouched.
+``segment_file`` refuses bad outputs (an existing output without ``overwrite``, an output that is an
+input, an unwritable directory) *before* any work, loads and validates the image, segments, and
+writes ``mask.nii.gz``, ``surface.vtp``, ``snake.json`` and ``qc.png``.
+
+All four outputs are first written into a staging directory inside the output directory and moved
+into place only when all of them are complete; if a move fails, the ones already moved are taken
+back and the earlier outputs restored. So a failed or interrupted run leaves no partial file, never
+a mix of old and new outputs, and (when it created the output directory) no empty directory.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -19,29 +23,59 @@ from typing import Any, Callable
 import numpy as np
 
 from segsnake import __version__
-from segsnake.errors import InputError, OutputError
+from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
 
-__all__ = ["OUTPUT_NAMES", "segment_file", "write_qc_picture"]
+__all__ = ["OUTPUT_NAMES", "segment_file", "write_qc_picture", "write_surface"]
 
 OUTPUT_NAMES = ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png")
 
 
-def _prepare_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None]) -> None:
+def _existing_ancestor(path: str) -> str:
+    """The nearest existing directory at or above ``path`` (what ``makedirs`` would write in)."""
+    d = os.path.abspath(path)
+    while not os.path.lexists(d):
+        parent = os.path.dirname(d)
+        if parent == d:
+            break
+        d = parent
+    return d
+
+
+def _check_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None]) -> None:
+    """Refuse, before any work, every output problem that can be seen in advance.
+
+    Nothing is created here: a run that fails later (bad input, failed segmentation) leaves no
+    empty output directory behind.
+    """
     from segsnake.io import check_not_input
 
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+    if os.path.lexists(out_dir) and not os.path.isdir(out_dir):
         raise OutputError(f"{out_dir}: exists and is not a directory")
     for name in OUTPUT_NAMES:
         path = os.path.join(out_dir, name)
         check_not_input(path, *inputs)
         if os.path.lexists(path) and not overwrite:
             raise OutputError(f"{path}: already exists; use --overwrite to replace it")
-    try:
-        os.makedirs(out_dir, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{out_dir}: cannot create the output directory ({exc.strerror})") from None
-    if not os.access(out_dir, os.W_OK | os.X_OK):
-        raise OutputError(f"{out_dir}: output directory is not writable")
+    base = _existing_ancestor(out_dir)
+    if not os.path.isdir(base):
+        raise OutputError(f"{out_dir}: cannot create the output directory ({base} is not a directory)")
+    # os.access sees read-only mounts and permissions (root bypasses the latter; the write itself
+    # then still fails cleanly, see _write_outputs).
+    if not os.access(base, os.W_OK | os.X_OK):
+        what = "output directory is not writable" if base == os.path.abspath(out_dir) else \
+            f"cannot create the output directory ({base} is not writable)"
+        raise OutputError(f"{out_dir}: {what}")
+
+
+def _with_image_name(exc: Exception, image_path: str) -> None:
+    """Prefix a core error's message with the image it is about (the core does not know files).
+
+    The exception is changed in place and re-raised by the caller with a bare ``raise``, so its
+    type (the exit code) and its traceback (``--debug``) stay those of the core.
+    """
+    msg = str(exc)
+    if not msg.startswith(image_path):
+        exc.args = (f"{image_path}: {msg}",)
 
 
 def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | None = None,
@@ -54,7 +88,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     image_path : str
         NIfTI (or any SimpleITK-readable) volume.
     out_dir : str
-        Output directory (created if missing).
+        Output directory (created if missing, only when the outputs are written).
     config : SegmentConfig
         The ``segment`` options.
     truth_path : str, optional
@@ -67,15 +101,28 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     -------
     dict
         JSON-able summary (also stored in ``snake.json`` under ``summary``).
+
+    Raises
+    ------
+    InputError
+        The image or truth cannot be read or is not usable (exit 3).
+    ConfigError
+        Options that do not fit this image, e.g. an initialization outside it (exit 2).
+    SegmentationError
+        No edges, or the snake collapsed, escaped or diverged (exit 4); nothing is written.
+    OutputError
+        Existing outputs without ``overwrite``, an output that is an input, an unwritable
+        directory or a failed write (exit 5); earlier outputs are left as they were.
     """
-    from segsnake.io import check_memory, load_volume  # noqa: F401 (check_memory via load_volume)
+    from segsnake.io import load_volume
     from segsnake.metrics import evaluate_masks
     from segsnake.pipeline import segment_volume
 
     t_start = time.perf_counter()
     image_path = os.fspath(image_path)
     out_dir = os.fspath(out_dir)
-    _prepare_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior])
+    truth_path = None if truth_path is None else os.fspath(truth_path)
+    _check_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior])
     t0 = time.perf_counter()
     volume = load_volume(image_path, volume_index=config.volume, nan=config.nan)
     truth = None
@@ -86,9 +133,13 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     extra = None
     if config.prior is not None and config.prior_weight > 0:
         extra = _prior_energy(config)
-    result = segment_volume(volume.data, volume.spacing, config,
-                            index_from_world=volume.world_to_index, progress=progress,
-                            extra_energy=extra)
+    try:
+        result = segment_volume(volume.data, volume.spacing, config,
+                                index_from_world=volume.world_to_index, progress=progress,
+                                extra_energy=extra)
+    except (ConfigError, SegmentationError) as exc:
+        _with_image_name(exc, image_path)
+        raise
     timings = {"load_s": load_s, **result.timings}
     summary: dict[str, Any] = {
         "image": os.path.abspath(image_path),
@@ -143,45 +194,181 @@ def _prior_energy(config):
     return make
 
 
-def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite) -> None:
-    """Write every output into a staging directory, then move them into place together."""
-    from segsnake.io import save_mask
-    from segsnake.rasterize import mesh_for_mask
+def write_surface(path: str, model, volume) -> None:
+    """Write the snake as a VTK XML PolyData file (``.vtp``) in world coordinates.
 
-    stage = tempfile.mkdtemp(prefix=".segsnake-", dir=out_dir)
+    The mesh is the model's default sampling (8 vertices per control interval, poles or end caps
+    closed): smooth on screen and about a hundred kilobytes, where the rasterizer's sub-voxel mesh
+    would be megabytes. Point coordinates are float32 world millimetres (the image affine
+    applied to voxel indices), binary, zlib-compressed.
+
+    The file is serialised in memory and written with Python's I/O: VTK's own file output
+    aborts the whole process on a full disk (measured: ``free(): invalid pointer`` with
+    VTK 9.7), where Python raises an ``OSError`` the caller turns into a clean failure.
+
+    Parameters
+    ----------
+    path : str
+        Destination file.
+    model : SplineSurface
+        The snake, in mm of scaled index space.
+    volume : Volume
+        The image: its spacing and affine map the model to world coordinates.
+    """
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+
+    mesh = model.to_mesh()
+    index = np.asarray(mesh.points, dtype=np.float64) / np.asarray(volume.spacing)
+    mesh.points = volume.index_to_world(index).astype(np.float32)
+    writer = vtkXMLPolyDataWriter()
+    writer.SetInputData(mesh)
+    writer.SetWriteToOutputString(True)
+    # Inline binary is base64 text, so the string is plain ASCII (appended raw data would not
+    # survive the str round trip of the Python wrapper).
+    writer.SetDataModeToBinary()
+    writer.SetCompressorTypeToZLib()
+    if writer.Write() != 1:
+        raise OSError(f"VTK could not serialise the surface ({mesh.n_points} points)")
+    text = writer.GetOutputString()
+    with open(path, "wb") as fh:
+        fh.write(text.encode("ascii"))
+
+
+def _make_dirs(out_dir: str) -> list[str]:
+    """``makedirs`` that returns the directories it created, outermost first."""
+    missing = []
+    d = os.path.abspath(out_dir)
+    while not os.path.lexists(d):
+        missing.append(d)
+        parent = os.path.dirname(d)
+        if parent == d:
+            break
+        d = parent
     try:
-        save_mask(result.mask, volume, os.path.join(stage, "mask.nii.gz"))
-        mesh = mesh_for_mask(result.model, volume.spacing)
-        index = np.asarray(mesh.points) / np.asarray(volume.spacing)
-        mesh.points = volume.index_to_world(index)
-        mesh.save(os.path.join(stage, "surface.vtp"))
-        snake = {
-            "format": "segsnake-result",
-            "version": __version__,
-            "summary": summary,
-            "model": result.model.to_dict(),
-            "initial_model": result.init_model.to_dict(),
-            "coordinates": "model control points in mm of scaled index space (i*sx, j*sy, k*sz); "
-                           "surface.vtp in world coordinates (the image affine)",
-            "affine": np.asarray(volume.affine).tolist(),
-            "settings": {**config.to_dict(), **result.settings},
-            "energy_history": result.history,
-            "timings": timings,
-        }
-        with open(os.path.join(stage, "snake.json"), "w", encoding="utf-8") as fh:
-            json.dump(snake, fh, indent=1, default=_json_default)
-        write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing, result.mask,
-                         result.model, result.init_model)
-        for name in OUTPUT_NAMES:
-            final = os.path.join(out_dir, name)
-            if os.path.lexists(final) and not overwrite:
-                raise OutputError(f"{final}: already exists; use --overwrite to replace it")
-        for name in OUTPUT_NAMES:
-            os.replace(os.path.join(stage, name), os.path.join(out_dir, name))
+        os.makedirs(out_dir, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"{out_dir}: writing the outputs failed ({exc.strerror or exc})") from None
+        raise OutputError(f"{out_dir}: cannot create the output directory "
+                          f"({exc.strerror or exc})") from None
+    return missing[::-1]
+
+
+def _remove_empty_dirs(created: list[str]) -> None:
+    for d in reversed(created):
+        with contextlib.suppress(OSError):
+            os.rmdir(d)  # only succeeds when empty: never removes anything else
+
+
+def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite) -> None:
+    """Write every output into a staging directory, then move them into place together.
+
+    Every failure (disk full, read-only directory, an output that appeared meanwhile, Ctrl-C)
+    leaves the output directory as it was: the staging directory is removed, outputs already
+    moved are taken back, earlier outputs restored, and a directory this call created removed.
+    """
+    from segsnake.io import save_mask
+
+    created = _make_dirs(out_dir)
+    ok = False
+    stage = None
+    current = out_dir
+    try:
+        try:
+            stage = tempfile.mkdtemp(prefix=".segsnake-", dir=out_dir)
+        except OSError as exc:
+            raise OutputError(f"{out_dir}: cannot write in the output directory "
+                              f"({exc.strerror or exc})") from None
+        try:
+            current = os.path.join(out_dir, "mask.nii.gz")
+            try:
+                save_mask(result.mask, volume, os.path.join(stage, "mask.nii.gz"))
+            except OutputError as exc:  # name the real output, not the staging file
+                reason = str(exc).split(": ", 1)[-1]
+                raise OutputError(f"{current}: {reason}") from None
+            current = os.path.join(out_dir, "surface.vtp")
+            write_surface(os.path.join(stage, "surface.vtp"), result.model, volume)
+            current = os.path.join(out_dir, "snake.json")
+            snake = {
+                "format": "segsnake-result",
+                "version": __version__,
+                "summary": summary,
+                "model": result.model.to_dict(),
+                "initial_model": result.init_model.to_dict(),
+                "coordinates": "model control points in mm of scaled index space "
+                               "(i*sx, j*sy, k*sz); surface.vtp in world coordinates "
+                               "(the image affine)",
+                "affine": np.asarray(volume.affine).tolist(),
+                "settings": {**config.to_dict(), **result.settings},
+                "energy_history": result.history,
+                "timings": timings,
+            }
+            text = json.dumps(snake, indent=1, default=_json_default)
+            with open(os.path.join(stage, "snake.json"), "w", encoding="utf-8") as fh:
+                fh.write(text)
+            current = os.path.join(out_dir, "qc.png")
+            write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing,
+                             result.mask, result.model, result.init_model)
+            current = out_dir
+            _commit(stage, out_dir, overwrite)
+        except OSError as exc:
+            raise OutputError(f"{current}: cannot write ({exc.strerror or exc})") from None
+        ok = True
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+        if not ok:
+            _remove_empty_dirs(created)
+
+
+def _commit(stage: str, out_dir: str, overwrite: bool) -> None:
+    """Move the staged outputs into ``out_dir``: all of them, or (on any failure) none.
+
+    Earlier outputs are first hard-linked (or copied) into the staging directory so that they
+    can be put back; new outputs are moved in with ``os.replace`` (``overwrite``) or with
+    ``os.link``, which refuses a name that appeared since the start.
+    """
+    finals = [os.path.join(out_dir, n) for n in OUTPUT_NAMES]
+    backups: dict[str, str] = {}
+    if overwrite:
+        for name, final in zip(OUTPUT_NAMES, finals):
+            if os.path.lexists(final):
+                keep = os.path.join(stage, ".old-" + name)
+                try:
+                    os.link(final, keep)
+                except OSError:
+                    shutil.copy2(final, keep)  # filesystems without hard links
+                backups[final] = keep
+    placed: list[str] = []
+    try:
+        for name, final in zip(OUTPUT_NAMES, finals):
+            src = os.path.join(stage, name)
+            if overwrite:
+                os.replace(src, final)
+            else:
+                try:
+                    os.link(src, final)
+                except FileExistsError:
+                    raise OutputError(f"{final}: already exists; use --overwrite to "
+                                      "replace it") from None
+                except OSError:  # no hard links here: check, then rename
+                    if os.path.lexists(final):
+                        raise OutputError(f"{final}: already exists; use --overwrite to "
+                                          "replace it") from None
+                    os.replace(src, final)
+            placed.append(final)
+    except BaseException:
+        for final in reversed(placed):
+            with contextlib.suppress(OSError):
+                if final in backups:
+                    os.replace(backups[final], final)
+                else:
+                    os.unlink(final)
+        raise
+    with contextlib.suppress(OSError):  # make the renames durable
+        fd = os.open(out_dir, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def _json_default(obj: Any) -> Any:
