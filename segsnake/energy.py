@@ -70,14 +70,14 @@ class FluxTerm:
         Lookup volume of the pre-integrated field.
     weight : float
         Multiplier (negative to *maximize* the integral).
-    order : int
-        Gauss-Legendre nodes per knot interval in each direction.
+    order : int or (int, int)
+        Gauss-Legendre nodes per knot interval (in u and v, or ``(order_u, order_v)``).
     """
 
     model: SplineSurface
     sampler: Sampler
     weight: float = 1.0
-    order: int = 4
+    order: int | tuple[int, int] = 4
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -129,7 +129,7 @@ class AreaTerm:
 
     model: SplineSurface
     weight: float = 1.0
-    order: int = 4
+    order: int | tuple[int, int] = 4
 
     def __post_init__(self) -> None:
         self.basis, self.weights = self.model.quadrature(self.order)

@@ -42,6 +42,10 @@ Progress = Callable[[str, float], None]
 
 #: Weight of the internal energy (see :func:`_stage_energy`), relative to the image energy.
 REGULARIZATION = 1.0
+#: Sheet mode with a polarity: the inner face is searched this many detector scales inside.
+INNER_FACE_DEPTH = 3.0
+#: Below this mean edge strength under the final surface the segmentation is a failure.
+MIN_EDGE_SUPPORT = 0.15
 #: Surface tension of cylinder snakes, in units of the edge map's peak (see :func:`_stage_energy`).
 CYLINDER_TENSION = 0.2
 
@@ -185,8 +189,6 @@ def _radial_field(shape: Sequence[int], spacing: Sequence[float], center: NDArra
 
 def _polarity(model: SplineSurface, gradient: NDArray, spacing: Sequence[float]) -> int:
     """+1 when the object is brighter than its surroundings along the current surface."""
-    from segsnake.lookup import Lookup  # noqa: F401  (keeps import errors at one place)
-
     u = np.linspace(0, 1, 4 * model.m1, endpoint=False)
     v = np.linspace(0.05, 0.95, 4 * model.m2)
     pts = model.evaluate(u, v)[0].reshape(-1, 3)
@@ -217,115 +219,179 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     extra_energy : callable(model) -> Energy, optional
         Added to every stage (the shape prior plugs in here).
     """
-    from segsnake.features import edge_map
-    from segsnake.lookup import Lookup
+    from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
-    timings: dict[str, float] = {}
     sp = tuple(float(s) for s in spacing)
     shape = image.shape
     report = progress or (lambda stage, frac: None)
+    run = _Run(config, sp, shape, extra_energy)
 
     t0 = time.perf_counter()
     model = initial_model(config, sp, shape, index_from_world, image)
     init = model
-    timings["init_s"] = time.perf_counter() - t0
+    run.timings["init_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     scale = config.scale if config.scale is not None else max(1.0, 1.5 * max(sp))
-    seed = None
-    if config.seed_point is not None:
-        seed = np.asarray(config.seed_point, dtype=float)
+    seed = None if config.seed_point is None else np.asarray(config.seed_point, dtype=float)
+    sheet = config.feature == "surface"
     # Thin dark sheets (the CSF around a brain in T1) are thin bright sheets of -image.
-    dark_sheet = config.feature == "surface" and config.polarity == "dark"
+    dark_sheet = sheet and config.polarity == "dark"
     em = edge_map(-image if dark_sheet else image, sp, mode=config.feature, scale_mm=scale,
                   threshold=config.threshold, seed=seed)
     # The initial surface lies inside the object (that is the contract of an initialization):
     # edges it encloses are internal structures (ventricles, vessels), never the boundary.
-    inner = rasterize(model, shape, sp)
-    if inner.any():
-        em.mask &= ~ndimage.binary_dilation(inner)
-        em.f[inner] = 0.0
-    if config.feature == "surface":
+    inside_init = rasterize(model, shape, sp)
+    _discard(em, ~ndimage.binary_dilation(inside_init) if inside_init.any() else None)
+    if sheet:
         # A sheet around the object faces its centre (thesis sec. 7.2.2: keep the voxels whose
         # normal points to the centre); sheets that run radially (sulci, septa) are not it.
-        c, axis = _center_and_axis(model)
-        radial = _radial_field(shape, sp, c, axis)
-        facing = np.abs(sum(em.normals[..., d] * radial[d] for d in range(3))) >= 0.5
-        em.mask &= facing
-        em.f *= ndimage.gaussian_filter(facing.astype(np.float32), [em.smooth_mm / x for x in sp])
-    timings["edge_map_s"] = time.perf_counter() - t0
+        radial = _radial_field(shape, sp, *_center_and_axis(model))
+        _discard(em, np.abs(_dot(em.normals, radial)) >= 0.5)
+    run.timings["edge_map_s"] = time.perf_counter() - t0
     report("edge map", 0.15)
 
-    history: list[dict[str, Any]] = []
-    total_iter = 0
-    bounds = (np.asarray(shape) - 1) * np.asarray(sp)
-    t_opt = 0.0
-    t_lookup = 0.0
-
-    # Capture: the flux of -grad(d), d the distance to the detected edges (smoothed so it can
-    # be differentiated). Every patch of the surface is pulled towards its nearest edge with
-    # unit strength whatever the distance, so the reach does not depend on a smoothing scale
-    # (a wide Gaussian ridge collapses snakes in objects thinner than its width). Its minimum
-    # sits about two smoothing widths inside the edge; the refinement takes it from there.
-    t0 = time.perf_counter()
-    capture_sigma = max(em.smooth_mm, 1.5)
-    dist = ndimage.distance_transform_edt(~em.mask, sampling=sp).astype(np.float32)
-    f_d = ndimage.gaussian_filter(-dist, [capture_sigma / x for x in sp], mode="nearest")
-    del dist
-    lookup = Lookup.from_field(f_d, sp)
-    del f_d
-    t_lookup += time.perf_counter() - t0
-    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, capture_sigma,
-                            capture_sigma, tol=1e-4)
-    t_opt += res["time_s"]
-    total_iter += res["iterations"]
-    history.append({"stage": f"capture (edge distance, sigma={capture_sigma:.2f}mm)", **res})
-    report("snake", 0.55)
-    sigmas = [capture_sigma]
-
-    # Refinement: the region integral of n_out . grad f (n_out the detected normal, oriented
-    # outward). Its first variation is n_out . grad f on the surface, which vanishes exactly on
-    # the ridge of f. (The flux of f n_out would add f div(n_out) = 2 H f, and its optimum
-    # would sit 2 s^2 H outside the ridge: +15 % volume on a 10 mm ball.)
-    t0 = time.perf_counter()
-    polarity = config.polarity
-    if config.feature == "edge" and polarity in ("auto", "bright", "dark"):
-        pol = _polarity(model, em.gradient, sp) if polarity == "auto" else \
-            (1 if polarity == "bright" else -1)
+    model = run.capture(model, em.mask, em.smooth_mm)
+    report("snake", 0.5)
+    if sheet:
+        radial = _radial_field(shape, sp, *_center_and_axis(model))
+        out = np.sign(_dot(em.normals, radial))[..., None] * em.normals
+        polarity = "sheet"
+    elif config.polarity in ("auto", "bright", "dark"):
+        pol = _polarity(model, em.gradient, sp) if config.polarity == "auto" else \
+            (1 if config.polarity == "bright" else -1)
         polarity = "bright" if pol > 0 else "dark"
-        # normals point to the brighter side; outward is away from a bright inside.
-        out = [-pol * em.normals[..., d] for d in range(3)]
+        out = -pol * em.normals  # normals point to the brighter side
     else:
-        c, axis = _center_and_axis(model)
-        radial = _radial_field(shape, sp, c, axis)
-        dot = sum(em.normals[..., d] * radial[d] for d in range(3))
-        sign = np.where(dot >= 0, np.float32(1), np.float32(-1))
-        out = [sign * em.normals[..., d] for d in range(3)]
-        polarity = "none" if config.feature == "edge" else "sheet"
-    along = sum(o * np.gradient(em.f, h, axis=d) for d, (o, h) in enumerate(zip(out, sp)))
-    lookup = Lookup.from_field(along.astype(np.float32), sp, divergence_of_gradient=False)
-    del along, out
-    t_lookup += time.perf_counter() - t0
-    model, res = _run_stage(model, lookup, -1.0, config, bounds, extra_energy, em.smooth_mm,
-                            min(em.smooth_mm, scale))
-    t_opt += res["time_s"]
-    total_iter += res["iterations"]
-    history.append({"stage": "refine", **res})
-    timings["lookup_s"] = t_lookup
-    timings["optimize_s"] = t_opt
+        radial = _radial_field(shape, sp, *_center_and_axis(model))
+        out = np.sign(_dot(em.normals, radial))[..., None] * em.normals
+        polarity = "none"
+    model = run.refine(model, em, out, min(em.smooth_mm, scale))
+    support = edge_support(model, em.f, sp)
 
+    if sheet and config.polarity in ("bright", "dark"):
+        # An object enclosed by a sheet (a brain in its CSF) ends at the sheet's inner face:
+        # the step from the object to the sheet, just inside the sheet's mid-surface. For a
+        # dark sheet the inside is brighter than the sheet, for a bright one darker.
+        report("inner face", 0.75)
+        t0 = time.perf_counter()
+        # Every step that survives non-maximum suppression, thresholded among the candidates
+        # of the band only: the inner face can be far weaker than the sheet's outer face.
+        face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None)
+        inside = rasterize(model, shape, sp)
+        depth = ndimage.distance_transform_edt(inside, sampling=sp)
+        pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
+        radial = _radial_field(shape, sp, *_center_and_axis(model))
+        band = inside & (depth <= INNER_FACE_DEPTH * scale) & (-pol * _dot(face.normals, radial) >= 0.5)
+        low, high = auto_levels(face.response[face.mask & band])
+        _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
+        run.timings["edge_map_s"] += time.perf_counter() - t0
+        model = run.capture(model, face.mask, face.smooth_mm)
+        model = run.refine(model, face, -pol * face.normals, min(face.smooth_mm, scale))
+        support = edge_support(model, face.f, sp)
+        polarity = f"inner face of a {config.polarity} sheet"
+
+    if support < MIN_EDGE_SUPPORT:
+        raise SegmentationError(
+            f"no boundary found: the final surface lies on almost no detected edge (mean edge "
+            f"strength {support:.2f}, expected about 1); check the initialization or --scale")
     t0 = time.perf_counter()
     mask = rasterize(model, shape, sp)
-    timings["mask_s"] = time.perf_counter() - t0
+    run.timings["mask_s"] = time.perf_counter() - t0
     if not mask.any():
         raise SegmentationError("the final surface encloses no voxel centre")
     report("done", 1.0)
-    settings = {"scale_mm": scale, "capture_sigmas_mm": sigmas, "smooth_mm": em.smooth_mm,
+    settings = {"edge_support": support, "scale_mm": scale, "smooth_mm": em.smooth_mm,
                 "levels": None if em.levels is None else list(map(float, em.levels)),
                 "edge_voxels": int(em.mask.sum())}
-    return SegmentResult(model, mask, history[-1]["energy"], total_iter, history, timings,
-                         polarity, init, settings)
+    return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
+                         run.timings, polarity, init, settings)
+
+
+def _dot(vectors: NDArray, field: list[NDArray]) -> NDArray:
+    return sum(vectors[..., d] * field[d] for d in range(3))
+
+
+def _discard(em, keep: NDArray | None) -> None:
+    """Keep only the edges where ``keep`` is True, in the mask and in the smooth map f."""
+    if keep is None:
+        return
+    em.mask &= keep
+    em.f *= ndimage.gaussian_filter(keep.astype(np.float32), [em.smooth_mm / x for x in em.spacing])
+
+
+class _Run:
+    """The stages of one segmentation, with their history and timings."""
+
+    def __init__(self, config, spacing, shape, extra_energy) -> None:
+        self.config, self.sp, self.extra = config, spacing, extra_energy
+        self.bounds = (np.asarray(shape) - 1) * np.asarray(spacing)
+        self.history: list[dict[str, Any]] = []
+        self.iterations = 0
+        self.timings: dict[str, float] = {"lookup_s": 0.0, "optimize_s": 0.0}
+
+    def _stage(self, name, model, lookup, band, feature_mm, tol=None):
+        model, res = _run_stage(model, lookup, -1.0, self.config, self.bounds, self.extra, band,
+                                feature_mm, tol)
+        self.timings["optimize_s"] += res["time_s"]
+        self.iterations += res["iterations"]
+        self.history.append({"stage": name, **res})
+        return model
+
+    def capture(self, model, edges: NDArray, smooth_mm: float):
+        """The flux of -grad(d), d the distance to the edges (smoothed to be differentiable).
+
+        Every patch of the surface is pulled towards its nearest edge with unit strength
+        whatever the distance, so the reach does not depend on a smoothing scale (a wide
+        Gaussian ridge collapses snakes in objects thinner than its width). Its minimum sits
+        about two smoothing widths inside the edge; the refinement takes it from there.
+        """
+        from segsnake.lookup import Lookup
+
+        if not edges.any():
+            raise SegmentationError("no edges found outside the initial surface")
+        t0 = time.perf_counter()
+        sigma = max(smooth_mm, 1.5)
+        dist = ndimage.distance_transform_edt(~edges, sampling=self.sp).astype(np.float32)
+        f_d = ndimage.gaussian_filter(-dist, [sigma / x for x in self.sp], mode="nearest")
+        del dist
+        lookup = Lookup.from_field(f_d, self.sp)
+        self.timings["lookup_s"] += time.perf_counter() - t0
+        # -d varies on the scale of sigma only near edges and medial axes: nodes 2 sigma apart.
+        return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
+                           2 * sigma, tol=1e-4)
+
+    def refine(self, model, em, out: NDArray, feature_mm: float):
+        """The region integral of n_out . grad f, n_out the detected normal oriented outward.
+
+        Its first variation is n_out . grad f on the surface, which vanishes exactly on the
+        ridge of f. (The flux of f n_out would add f div(n_out) = 2 H f, and its optimum would
+        sit 2 s^2 H outside the ridge: +15 % volume on a 10 mm ball.)
+        """
+        from segsnake.lookup import Lookup
+
+        t0 = time.perf_counter()
+        along = sum(out[..., d] * np.gradient(em.f, h, axis=d) for d, h in enumerate(self.sp))
+        lookup = Lookup.from_field(along.astype(np.float32), self.sp, divergence_of_gradient=False)
+        del along
+        self.timings["lookup_s"] += time.perf_counter() - t0
+        return self._stage("refine", model, lookup, em.smooth_mm, feature_mm)
+
+
+def edge_support(model: SplineSurface, f: NDArray, spacing: Sequence[float]) -> float:
+    """Area-weighted mean of the edge map over the surface (about 1 on a detected boundary).
+
+    The edge map is an area density that peaks at about 1 on every detected surface, so this is
+    the fraction of the snake that found an edge; a snake that ended in empty space or in
+    noise has almost none.
+    """
+    gb, w = model.quadrature(4)
+    s, su, sv = gb.evaluate(model.control_points())
+    area = w * np.linalg.norm(np.cross(sv, su), axis=-1)
+    idx = (s / np.asarray(spacing)).reshape(-1, 3).T
+    values = ndimage.map_coordinates(f, idx, order=1, mode="constant", cval=0.0)
+    return float(np.sum(area.ravel() * values) / max(np.sum(area), 1e-300))
 
 
 def _model_radius(model: SplineSurface) -> float:
@@ -335,12 +401,13 @@ def _model_radius(model: SplineSurface) -> float:
     return float((3 * abs(model.volume(order=4)) / (4 * math.pi)) ** (1 / 3))
 
 
-def longest_interval(model: SplineSurface, params: NDArray | None = None) -> float:
-    """Longest distance between neighbouring control points, around or along (mm)."""
+def longest_intervals(model: SplineSurface, params: NDArray | None = None) -> NDArray:
+    """Longest distances between neighbouring control points around (u) and along (v), mm."""
     C = model.control_points(params)
-    return float(max(np.linalg.norm(np.diff(C, axis=0), axis=-1).max(),
-                     np.linalg.norm(C[0] - C[-1], axis=-1).max(),
-                     np.linalg.norm(np.diff(C, axis=1), axis=-1).max()))
+    around = max(np.linalg.norm(np.diff(C, axis=0), axis=-1).max(),
+                 np.linalg.norm(C[0] - C[-1], axis=-1).max())
+    along = np.linalg.norm(np.diff(C, axis=1), axis=-1).max()
+    return np.array([around, along])
 
 
 def quadrature_order(interval_mm: float, feature_mm: float) -> int:
@@ -365,8 +432,8 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     t0 = time.perf_counter()
     iterations, evaluations, history = 0, 0, []
     for _ in range(8):
-        max_interval = 1.5 * longest_interval(model)
-        order = quadrature_order(max_interval, feature_mm)
+        max_interval = 1.5 * longest_intervals(model)
+        order = tuple(quadrature_order(length, feature_mm) for length in max_interval)
         energy = _stage_energy(model, lookup, weight, order, extra_energy)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
                               tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
@@ -375,7 +442,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         iterations += res.iterations
         evaluations += res.evaluations
         history += res.history
-        if longest_interval(model) < 0.9 * max_interval or iterations >= config.max_iter:
+        if np.all(longest_intervals(model) < 0.9 * max_interval) or iterations >= config.max_iter:
             break
     return model, {"energy": res.energy, "iterations": iterations, "quadrature_order": order,
                    "volume_mm3": model.volume(order=4), "evaluations": evaluations,
@@ -394,7 +461,7 @@ class _Admissible:
     moves the surface by a few ridge widths, far less than would turn a normal over).
     """
 
-    def __init__(self, start: SplineSurface, max_interval: float, per_interval: int = 3) -> None:
+    def __init__(self, start: SplineSurface, max_interval: NDArray, per_interval: int = 3) -> None:
         self.start = start
         self.max_interval = max_interval
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
@@ -407,7 +474,7 @@ class _Admissible:
         return np.cross(sv, su)
 
     def __call__(self, params: NDArray) -> bool:
-        if longest_interval(self.start, params) > self.max_interval:
+        if np.any(longest_intervals(self.start, params) > self.max_interval):
             return False
         return bool(np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0))
 

@@ -217,10 +217,14 @@ class SplineSurface:
             n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
         return n
 
-    def quadrature(self, order: int = 6) -> tuple[GridBasis, NDArray]:
-        """Gauss-Legendre grid basis and 2D weights ``(nu, nv)`` with ``order`` nodes per knot."""
-        u, wu = gauss_legendre_grid(self.m1, order)
-        v, wv = gauss_legendre_grid(self.m2, order)
+    def quadrature(self, order: int | tuple[int, int] = 6) -> tuple[GridBasis, NDArray]:
+        """Gauss-Legendre grid basis and 2D weights ``(nu, nv)``.
+
+        ``order`` nodes per knot interval, or ``(order_u, order_v)`` for each direction.
+        """
+        order_u, order_v = (order, order) if np.isscalar(order) else order
+        u, wu = gauss_legendre_grid(self.m1, int(order_u))
+        v, wv = gauss_legendre_grid(self.m2, int(order_v))
         return self.grid_basis(u, v), wu[:, None] * wv[None, :]
 
     def volume(self, order: int = 8) -> float:

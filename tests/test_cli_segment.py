@@ -315,8 +315,8 @@ CASES = [
      ["--shape", "cylinder", "--axis-start", "11", "12", "4", "--axis-end", "11", "12", "20",
       "--radius", "0"], 2, ["radius"]),
     ("m1 3", _ball_image, INIT + ["--m1", "3"], 2, ["m1", ">= 4"]),
-    ("collapse onto a dot", _dot, ["--center", "12", "12", "12", "--radii", "6", "6", "6"], 4,
-     ["collapsed"]),
+    ("only edges inside the initial sphere", _dot, ["--center", "12", "12", "12", "--radii", "6", "6", "6"], 4,
+     ["no edges found outside the initial surface"]),
 ]
 
 
