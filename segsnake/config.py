@@ -365,7 +365,7 @@ class SegmentConfig:
     tol: float = 1e-6
     coarse_to_fine: bool = True
     prior: str | None = None
-    prior_weight: float = 0.0
+    prior_weight: float = 1.0  # used only with a prior; 0 switches it off
     prior_space: str = "affine"
     volume: int | None = None
     nan: str = "refuse"

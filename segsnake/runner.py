@@ -176,20 +176,46 @@ def _load_truth(path: str, volume) -> np.ndarray:
 
 
 def _prior_energy(config):
-    from segsnake.priors import AffinePrior
+    """The ``--prior`` energy for :func:`segment_volume`'s ``extra_energy`` (a factory per stage).
+
+    REF is any saved model: ``segsnake shape`` output, a previous ``snake.json`` or a
+    ``segsnake shape-model`` MODEL.json (its reference is stored under ``model``). The weight is
+    relative (:func:`segsnake.priors.relative_prior_weight`): an RMS deviation from the
+    reference's shape space of 10 % of the snake's radius costs ``--prior-weight`` times the
+    image energy.
+    """
+    from segsnake.priors import AffinePrior, relative_prior_weight
     from segsnake.surfaces import load_model
 
+    path = config.prior
     try:
-        reference = load_model(config.prior)
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise InputError(f"{config.prior}: not a readable segsnake model ({exc})") from None
+        reference = load_model(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such prior file") from None
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"{path}: not a readable segsnake model ({msg})") from None
+
+    def mismatch(kind, m1, m2) -> InputError:
+        sizes = ", ".join(f"{n}={v}" for n, v in (("M1", m1), ("M2", m2)) if v is not None)
+        snake = f"a {kind}" + (f" with {sizes}" if sizes else "")
+        return InputError(f"{path}: the prior is a {reference.kind} with M1={reference.m1}, "
+                          f"M2={reference.m2} but the snake is {snake}; segment with --shape "
+                          f"{reference.kind} --m1 {reference.m1} --m2 {reference.m2} or use a "
+                          f"matching reference")
+
+    # Refuse what the options already contradict before any image work; the sizes the pipeline
+    # picks by default are checked when the snake exists (first stage).
+    if reference.kind != config.shape or \
+            (config.m1 is not None and config.m1 != reference.m1) or \
+            (config.m2 is not None and config.m2 != reference.m2):
+        raise mismatch(config.shape, config.m1, config.m2)
 
     def make(model):
         if (reference.kind, reference.m1, reference.m2) != (model.kind, model.m1, model.m2):
-            raise InputError(f"{config.prior}: prior is a {reference.kind} with M1={reference.m1}, "
-                             f"M2={reference.m2}; the snake is a {model.kind} with M1={model.m1}, "
-                             f"M2={model.m2}")
-        return AffinePrior(model, reference, weight=config.prior_weight, space=config.prior_space)
+            raise mismatch(model.kind, model.m1, model.m2)
+        return AffinePrior(model, reference, weight=relative_prior_weight(model, config.prior_weight),
+                           space=config.prior_space)
 
     return make
 

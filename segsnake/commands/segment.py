@@ -44,7 +44,10 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                    help="NaN/Inf voxels: refuse the image (default) or fill with its minimum")
     p = parser.add_argument_group("shape prior")
     p.add_argument("--prior", default=None, metavar="REF.json", help="reference snake (a saved model)")
-    p.add_argument("--prior-weight", type=float, default=None, metavar="W", help="prior weight gamma")
+    p.add_argument("--prior-weight", type=float, default=None, metavar="W",
+                   help="prior strength relative to the image energy: an RMS deviation from the "
+                        "reference's shape space of 10%% of the snake's radius costs W times the "
+                        "image energy (1 strong, 0.1 mild; default 1 when --prior is given, 0 = off)")
     p.add_argument("--prior-space", choices=("affine", "linear", "similarity", "translation"),
                    default=None, help="transformations the prior ignores (default affine)")
 
