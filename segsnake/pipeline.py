@@ -42,8 +42,9 @@ Progress = Callable[[str, float], None]
 
 #: Weight of the internal energy (see :func:`_stage_energy`), relative to the image energy.
 REGULARIZATION = 1.0
-#: Sheet mode with a polarity: the inner face is searched this many detector scales inside.
-INNER_FACE_DEPTH = 3.0
+#: Sheet mode with a polarity: the inner face is searched this deep inside the sheet's mid-surface
+#: (mm; at least 3 detector scales). A brain's CSF and skull together are 5-10 mm thick.
+INNER_FACE_DEPTH_MM = 10.0
 #: Below this mean edge strength under the final surface the segmentation is a failure.
 MIN_EDGE_SUPPORT = 0.15
 #: Surface tension of cylinder snakes, in units of the edge map's peak (see :func:`_stage_energy`).
@@ -283,7 +284,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         depth = ndimage.distance_transform_edt(inside, sampling=sp)
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         radial = _radial_field(shape, sp, *_center_and_axis(model))
-        band = inside & (depth <= INNER_FACE_DEPTH * scale) & (-pol * _dot(face.normals, radial) >= 0.5)
+        band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale)) & (-pol * _dot(face.normals, radial) >= 0.5)
         low, high = auto_levels(face.response[face.mask & band])
         _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
         run.timings["edge_map_s"] += time.perf_counter() - t0
