@@ -15,6 +15,9 @@ from typing import Sequence
 
 from segsnake.errors import SegsnakeError
 
+DESCRIPTION = ("Segment 3D structures in medical volumes with smooth spline snakes "
+               "(deformable spheres and cylinders).")
+
 # Order is the order shown in ``segsnake --help``.
 COMMANDS = ("segment", "demo", "phantom", "evaluate", "batch", "shape", "shape-model")
 
@@ -27,7 +30,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="segsnake", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="segsnake", description=DESCRIPTION,
+                     epilog="Run 'segsnake COMMAND --help' for the options of a command.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True

@@ -33,9 +33,13 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
     m.add_argument("--scale", type=float, default=None, metavar="MM",
                    help="detector scale in mm (default 1.5 x the largest voxel size)")
     m.add_argument("--feature", choices=("edge", "surface"), default=None,
-                   help="edge: boundary of a filled object (default); surface: a thin bright sheet")
+                   help="edge: boundary of a filled object (default); surface: a thin sheet "
+                        "(a tube wall, a membrane, the CSF around a brain)")
     m.add_argument("--polarity", choices=("auto", "bright", "dark", "none"), default=None,
-                   help="edge mode: is the object brighter (bright) or darker than around it")
+                   help="edge mode: the object is brighter (bright) or darker (dark) than its "
+                        "surroundings, auto detects it, none ignores it. surface mode: auto/none fit "
+                        "the mid-surface of a bright sheet; bright/dark take the inner face of a "
+                        "bright/dark sheet that encloses the object")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
     _vec3(m, "--seed-point", ("I", "J", "K"), "keep only the detected surface nearest this voxel")
     m.add_argument("--max-iter", type=int, default=None, help="iteration cap per stage (default 300)")
