@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import central_difference_gradient
 
 from segsnake.energy import FluxTerm, SumEnergy
 from segsnake.optimize import minimize_energy
@@ -68,16 +69,7 @@ def test_gradient_matches_central_differences(make, seed):
     energy = SumEnergy([FluxTerm(model, AnalyticSampler("blob", s=2.0), weight=-1.0),
                         FluxTerm(model, AnalyticSampler("volume"), weight=0.01)])
     _, grad = energy.value_and_grad(model.params)
-    h = 1e-6
-    fd = np.zeros_like(grad)
-    for i in range(grad.shape[0]):
-        for d in range(3):
-            p = model.params.copy()
-            p[i, d] += h
-            ep, _ = energy.value_and_grad(p)
-            p[i, d] -= 2 * h
-            em, _ = energy.value_and_grad(p)
-            fd[i, d] = (ep - em) / (2 * h)
+    fd = central_difference_gradient(energy, model.params)
     rel = np.linalg.norm(grad - fd) / np.linalg.norm(fd)
     assert rel < 1e-5
 
@@ -106,13 +98,5 @@ def test_area_term_value_and_gradient(model):
     term = AreaTerm(model, weight=0.5, order=8)
     value, grad = term.value_and_grad(model.params)
     assert abs(value - 0.5 * model.area()) < 1e-9
-    h = 1e-6
-    fd = np.zeros_like(grad)
-    for i in range(grad.shape[0]):
-        for d in range(3):
-            p = model.params.copy()
-            p[i, d] += h
-            ep = term.value_and_grad(p)[0]
-            p[i, d] -= 2 * h
-            fd[i, d] = (ep - term.value_and_grad(p)[0]) / (2 * h)
+    fd = central_difference_gradient(term, model.params)
     assert np.linalg.norm(grad - fd) / np.linalg.norm(fd) < 1e-6

@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from conftest import central_difference_gradient
 
 from segsnake.errors import InputError
 from segsnake.priors import (
@@ -227,15 +228,7 @@ def test_prior_gradient_matches_central_differences(space, model):
     prior = AffinePrior(model, ref, weight=0.7, space=space)
     snake = _perturbed(model.transformed(np.diag([2.0, 1.5, 1.0])), 3, 0.2)
     _, grad = prior.value_and_grad(snake.params)
-    h = 1e-5
-    fd = np.zeros_like(grad)
-    for i in range(grad.shape[0]):
-        for d in range(3):
-            p = snake.params.copy()
-            p[i, d] += h
-            ep = prior.value_and_grad(p)[0]
-            p[i, d] -= 2 * h
-            fd[i, d] = (ep - prior.value_and_grad(p)[0]) / (2 * h)
+    fd = central_difference_gradient(prior, snake.params, h=1e-5)
     assert np.linalg.norm(grad - fd) / np.linalg.norm(fd) < 1e-7
 
 
