@@ -83,7 +83,6 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     min_volume_fraction : float
         A volume below this fraction of the initial one counts as a collapse.
     """
-    shape = model.params.shape
     sampler = _displacement_operator(model)
     v0 = abs(model.volume(order=4))
     nfev = 0

@@ -1072,9 +1072,7 @@ def brain(
     pial = hull - D * np.exp(-((h / w_pial) ** 4))
     wm = hull - cortex * scale - D * np.exp(-((h / w_wm) ** 4))
     wm = np.minimum(wm, pial - 0.5 * cortex * scale)
-    csf = hull + 2.5 * scale
-    skull = csf + 6.0 * scale
-    scalp = skull + 5.0 * scale
+    csf = hull + 2.5 * scale  # outer CSF 2.5, skull 6, scalp 5 (x scale mm), as shells below
 
     # ---- per voxel: distance and direction from the centre ----
     x, y, z = _axes_mm(shape, spacing)

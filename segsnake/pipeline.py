@@ -1,22 +1,27 @@
 """The segmentation pipeline: image -> edge map -> lookups -> snake -> mask.
 
 :func:`segment_volume` is the numerical core (arrays in, model and mask out, no files);
-:func:`segment_file` wraps it with loading, validation and the outputs of ``segsnake segment``.
+:func:`segsnake.runner.segment_file` wraps it with loading, validation and the outputs.
 
-How the surface gets to the boundary (design.md, "Where the minimum sits"):
+How the surface gets onto the boundary (design.md, "Where the minimum sits"):
 
-1. *Capture stages.* ``E = -flux(grad f_s)`` with ``f_s`` the edge map smoothed at a scale
-   ``s`` that starts at half the initial radius and halves down to about 2 mm. A wide ridge
-   pulls from far away; each stage starts where the previous one stopped. Their minimum sits at
-   the inner inflection of the ridge, about ``s`` inside the edge, which is why they are only
-   the approach.
-2. *Refinement.* ``E = -flux(f n_out)``: the flux of the edge map times the detected surface
-   normal, oriented outward. By the divergence theorem it equals ``-integral f (n_out . n) dA``
-   over the surface, which is largest when the surface lies *on* the ridge and aligned with it,
-   so it has no inward bias (only ``2 s^2 / R`` outward from curvature). For step edges the
-   orientation comes from the step polarity (bright inside: outward is down the gradient), so
-   an edge of the wrong polarity repels instead of attracting; for thin sheets it comes from
-   the snake's centre or axis.
+1. *Edges.* The detector's edge map (``features.edge_map``), minus what cannot be the boundary:
+   edges enclosed by the initial surface (the start lies inside the object, so they are internal
+   structures), and in sheet mode sheets that do not face the snake's centre (sulci, septa).
+2. *Capture.* The flux of ``-grad d``, ``d`` the distance to the remaining edges: every patch of
+   the surface is pulled towards its nearest edge with unit strength, whatever the distance and
+   the object's thickness. Its minimum lies about two smoothing widths inside the edge.
+3. *Refinement.* The region integral of ``n_out . grad f`` (``f`` the smooth edge map, ``n_out``
+   the detected normal oriented outward: down the step for a bright object, up it for a dark
+   one, away from the centre for a sheet). Its first variation on the surface is
+   ``n_out . grad f``, which vanishes exactly on the ridge of ``f``: no inward bias, and an edge
+   of the wrong polarity repels.
+4. *Inner face* (sheet mode with a polarity): for an object enclosed by a sheet (a brain in its
+   CSF), capture and refinement again on the steps just inside the sheet.
+
+Every stage minimizes its image term plus the internal energy (:mod:`segsnake.regularize`),
+plus surface tension for open cylinders and the user's shape prior, with the step-limited,
+fold-refusing L-BFGS of :mod:`segsnake.optimize`.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from segsnake.energy import AreaTerm, FluxTerm, SumEnergy
-from segsnake.errors import ConfigError, InputError, SegmentationError
+from segsnake.errors import ConfigError, SegmentationError
 from segsnake.optimize import minimize_energy
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
@@ -284,7 +289,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         depth = ndimage.distance_transform_edt(inside, sampling=sp)
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         radial = _radial_field(shape, sp, *_center_and_axis(model))
-        band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale)) & (-pol * _dot(face.normals, radial) >= 0.5)
+        facing = -pol * _dot(face.normals, radial) >= 0.5
+        band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale)) & facing
         low, high = auto_levels(face.response[face.mask & band])
         _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
         run.timings["edge_map_s"] += time.perf_counter() - t0
@@ -304,6 +310,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         raise SegmentationError("the final surface encloses no voxel centre")
     report("done", 1.0)
     settings = {"edge_support": support, "scale_mm": scale, "smooth_mm": em.smooth_mm,
+                "regularization": REGULARIZATION,
                 "levels": None if em.levels is None else list(map(float, em.levels)),
                 "edge_voxels": int(em.mask.sum())}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
@@ -459,14 +466,17 @@ class _Admissible:
     folds through itself, and a quasi-Newton step will find that. A fold starts as a place
     where the surface turns over, i.e. where its normal reverses; so a step is refused if any
     normal on a grid turned by more than 90 degrees since the start of the stage (a stage
-    moves the surface by a few ridge widths, far less than would turn a normal over).
+    moves the surface by a few ridge widths, far less than would turn a normal over). The knot
+    intervals next to the poles are left out: there the normal is set by the pole tangents,
+    whose joint rotation in the tangent plane is a harmless reparameterization.
     """
 
     def __init__(self, start: SplineSurface, max_interval: NDArray, per_interval: int = 3) -> None:
         self.start = start
         self.max_interval = max_interval
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
-        v = (np.arange(per_interval, per_interval * (start.m2 - 1)) + 0.5) / (per_interval * start.m2)
+        rows = np.arange(per_interval, per_interval * (start.m2 - 1))
+        v = (rows + 0.5) / (per_interval * start.m2)
         self.basis = start.grid_basis(u, v)
         self.n0 = self._normals(start.params)
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, gauss_legendre_grid

@@ -492,8 +492,6 @@ class SphereModel(SplineSurface):
         pts = np.vstack([ring, north, south])
         n_ring = len(ring)
         tris = [self._grid_faces(nu, nv - 1)]
-        i = np.arange(nu)
-        ip = (i + 1) % nu
         last = (nv - 2) * nu
         tris += self._cap_faces(nu, n_ring, 0, n_ring + 1, last)
         return self._polydata(pts, np.concatenate(tris))
