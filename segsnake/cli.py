@@ -64,7 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MemoryError:
         if args.debug:
             raise
-        print(f"segsnake {args.command}: error: out of memory (try --crop or a coarser --scale)",
+        print(f"segsnake {args.command}: error: out of memory (crop or resample the image first)",
               file=sys.stderr)
         return 3
 

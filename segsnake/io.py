@@ -164,7 +164,7 @@ def check_memory(
     Raises
     ------
     InputError
-        With the estimate and the ``--crop`` / ``--scale`` advice.
+        With the estimate and the advice to crop or resample the image.
     """
     nvox = 1
     for s in shape:
@@ -176,7 +176,7 @@ def check_memory(
         raise InputError(
             f"{what}: a {dims} volume needs about {_fmt_bytes(estimate)} of memory, "
             f"more than this machine's {_fmt_bytes(total)}; "
-            "reduce it with --crop or a coarser --scale"
+            "crop the image to the structure or resample it to larger voxels first"
         )
     return estimate
 
@@ -361,7 +361,7 @@ def load_volume(
         raise
     except MemoryError:
         raise InputError(
-            f"{spath}: out of memory while reading; reduce it with --crop or a coarser --scale"
+            f"{spath}: out of memory while reading; crop or resample the image first"
         ) from None
     except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
         raise InputError(
