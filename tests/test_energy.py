@@ -37,13 +37,17 @@ def _perturbed(model, seed, amp=0.1):
 
 
 @pytest.mark.parametrize("model", [SphereModel.ellipsoid([1, 2, 3], [2, 3, 4], m1=6, m2=5),
-                                   CylinderModel.from_axis([0, 0, 0], [0, 0, 4], 1.5, m1=6, m2=3)])
+                                   CylinderModel.from_axis([0, 0, 0], [0, 0, 4], 1.5, m1=6, m2=3),
+                                   CylinderModel.from_axis([0, 0, 0], [4, 0, 0], 1.5, m1=6, m2=3),
+                                   CylinderModel.from_axis([1, 2, 3], [7, 2, 11], 2.0)])
 def test_flux_of_unit_field_is_the_volume(model):
-    # h = 1: the flux of (x, 0, 0) is the enclosed volume. For a z-aligned open cylinder the caps
-    # have n_x = 0, so the lateral flux alone is the capped volume.
+    # h = 1: the flux of (x, 0, 0) through the closed surface is the enclosed volume. A cylinder
+    # is closed by its planar caps, which carry all of it when the axis is along x.
     term = FluxTerm(model, AnalyticSampler("volume"), order=6)
     value, _ = term.value_and_grad(model.params)
-    assert abs(value - model.volume()) < 1e-10
+    assert abs(value - model.volume()) < 1e-9
+    assert abs(FluxTerm(model.reversed(), AnalyticSampler("volume"), order=6)
+               .value_and_grad(model.reversed().params)[0] + model.volume()) < 1e-9
 
 
 def test_flux_of_gaussian_blob_matches_volume_integral():
@@ -61,7 +65,9 @@ def test_flux_of_gaussian_blob_matches_volume_integral():
 
 @pytest.mark.parametrize("make", [lambda: SphereModel.unit(5, 4), lambda: SphereModel.unit(9, 9),
                                   lambda: SphereModel.unit(12, 7),
-                                  lambda: CylinderModel.unit(6, 3), lambda: CylinderModel.unit(9, 5)])
+                                  lambda: CylinderModel.unit(6, 3), lambda: CylinderModel.unit(9, 5),
+                                  lambda: CylinderModel.from_axis([0.1, 0, 0], [0.5, 0.3, 0.6], 0.3,
+                                                                  m1=6, m2=3)])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_gradient_matches_central_differences(make, seed):
     base = make()
