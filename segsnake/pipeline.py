@@ -8,9 +8,9 @@ How the surface gets onto the boundary (design.md, "Where the minimum sits"):
 1. *Edges.* The detector's edge map (``features.edge_map``), minus what cannot be the boundary:
    edges enclosed by the initial surface (the start lies inside the object, so they are internal
    structures), and in sheet mode sheets that do not face the snake's centre (sulci, septa).
-2. *Capture.* The flux of ``-grad d``, ``d`` the distance to the remaining edges: every patch of
-   the surface is pulled towards its nearest edge with unit strength, whatever the distance and
-   the object's thickness. Its minimum lies about two smoothing widths inside the edge.
+2. *Capture.* The flux of ``grad(-d)``, ``d`` the distance to the remaining edges: the surface
+   is pulled out towards its nearest edges from any distance, whatever the object's thickness.
+   Its minimum lies about two smoothing widths inside the edge.
 3. *Refinement.* The region integral of ``n_out . grad f`` (``f`` the smooth edge map, ``n_out``
    the detected normal oriented outward: down the step for a bright object, up it for a dark
    one, away from the centre for a sheet). Its first variation on the surface is
@@ -71,24 +71,36 @@ class SegmentResult:
     settings: dict[str, Any] = field(default_factory=dict)
 
 
-def auto_init(image: NDArray, spacing: Sequence[float]) -> tuple[NDArray, NDArray]:
-    """Rough centre and half-size radii (both in voxel indices) of the brightest large object.
+def auto_init(image: NDArray, spacing: Sequence[float],
+              polarity: str = "auto") -> tuple[NDArray, NDArray]:
+    """Rough centre and half-size radii (both in voxel indices) of the largest object.
 
-    Otsu's threshold of the image, the largest connected component, its centroid, and the
-    radii of the ellipsoid with the same second moments, halved (so the initial sphere lies
-    inside the object, as in thesis sec. 7.2.2/7.2.3).
+    Otsu's threshold of the image, the largest connected component on the object's side of it
+    (bright, dark, or for ``auto`` the larger of the two that does not touch the volume's
+    border), its centroid, and the radii of the ellipsoid with the same second moments, halved
+    (so the initial sphere lies inside the object, as in thesis sec. 7.2.2/7.2.3).
     """
     from skimage.filters import threshold_otsu
 
     finite = image[np.isfinite(image)]
     if finite.size == 0 or finite.min() == finite.max():
         raise SegmentationError("cannot estimate an initial sphere: the image is constant")
-    fg = image > threshold_otsu(finite)
-    labels, n = ndimage.label(fg)
-    if n == 0:
-        raise SegmentationError("cannot estimate an initial sphere: no foreground after Otsu")
-    sizes = np.bincount(labels.ravel())[1:]
-    comp = labels == (np.argmax(sizes) + 1)
+    level = threshold_otsu(finite)
+    sides = {"bright": image > level, "dark": image <= level}
+    candidates = []
+    for name, side in sides.items():
+        if polarity in ("bright", "dark") and name != polarity:
+            continue
+        labels, n = ndimage.label(side)
+        if n == 0:
+            continue
+        sizes = np.bincount(labels.ravel())[1:]
+        comp = labels == (np.argmax(sizes) + 1)
+        border = any(comp.take(0, axis=a).any() or comp.take(-1, axis=a).any() for a in range(3))
+        candidates.append((border, -int(sizes.max()), name == "dark", comp))
+    if not candidates:
+        raise SegmentationError("cannot estimate an initial sphere: no object after Otsu")
+    comp = min(candidates, key=lambda c: c[:3])[3]  # off the border first, then the largest
     idx = np.argwhere(comp).astype(np.float64)
     center = idx.mean(axis=0)
     sp = np.asarray(spacing, dtype=np.float64)
@@ -105,10 +117,16 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
     """Initial snake (in mm, scaled index space) from the ``segment`` options.
 
     Positions and radii are voxel indices along the array axes, or world millimetres with
-    ``config.world`` (then ``index_from_world`` converts points, and radii are divided by the
-    spacing).
+    ``config.world``: then ``index_from_world`` converts points, sphere radii are lengths along
+    the world axes (mapped through the inverse affine, so a rotated grid gets a rotated
+    ellipsoid) and a cylinder radius is a length in mm.
     """
     sp = np.asarray(spacing, dtype=np.float64)
+    world_axes = None
+    if config.world and index_from_world is not None:
+        origin = index_from_world(np.zeros((1, 3)))[0]
+        world_axes = index_from_world(np.eye(3)) - origin  # rows: index change per world unit
+        world_axes = world_axes.T  # columns: the world axes in index units
     ext = (np.asarray(shape) - 1) * sp
 
     def point(p: Sequence[float] | None, name: str) -> NDArray | None:
@@ -135,16 +153,22 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
         m1 = config.m1 or 9
         m2 = config.m2 or 9
         center = point(config.center, "--center")
+        axes = None  # columns: the ellipsoid's semi-axes in mm of scaled index space
         if config.radii is not None:
-            radii_mm = lengths(config.radii, "--radii")
+            radii = lengths(config.radii, "--radii")
+            if config.world and world_axes is not None:
+                # Radii along the world axes: map them through the affine's inverse.
+                axes = np.diag(sp) @ world_axes @ np.diag(radii)
+            else:
+                axes = np.diag(radii)
         if center is None or config.radii is None:
             if image is None:
                 raise ConfigError("sphere initialization needs --center and --radii")
-            c_idx, r_idx = auto_init(image, sp)
+            c_idx, r_idx = auto_init(image, sp, config.polarity)
             center = c_idx * sp if center is None else center
-            if config.radii is None:
-                radii_mm = r_idx * sp
-        return SphereModel.ellipsoid(center, radii_mm, m1=m1, m2=m2)
+            if axes is None:
+                axes = np.diag(r_idx * sp)
+        return SphereModel.unit(m1, m2).transformed(axes, center)
     if config.shape == "cylinder":
         if config.axis_start is None or config.axis_end is None or config.radius is None:
             raise ConfigError("cylinder initialization needs --axis-start, --axis-end and --radius")
@@ -172,23 +196,30 @@ def perpendicular_spacing(spacing: Sequence[float], axis: Sequence[float]) -> fl
 
 
 def _center_and_axis(model: SplineSurface) -> tuple[NDArray, NDArray | None]:
+    """The centre of a sphere snake; for a cylinder its axis as (start point, end - start)."""
     if model.kind == "cylinder":
         r0, r1 = model.end_rings(4 * model.m1)
-        c0, c1 = r0.mean(axis=0), r1.mean(axis=0)
-        axis = c1 - c0
-        return c0, axis / max(np.linalg.norm(axis), 1e-12)
+        c0 = r0.mean(axis=0)
+        return c0, r1.mean(axis=0) - c0
     return model.control_points().reshape(-1, 3).mean(axis=0), None
 
 
 def _radial_field(shape: Sequence[int], spacing: Sequence[float], center: NDArray,
                   axis: NDArray | None) -> list[NDArray]:
-    """Unit vectors pointing away from a centre (sphere) or an axis line (cylinder), per voxel."""
+    """Unit vectors pointing away from a centre, or from the nearest point of an axis segment.
+
+    For a cylinder, ``center`` is the axis start and ``axis`` runs to its end: inside the
+    segment's slab the vectors are radial, beyond an end they point away from that end's centre
+    (so the ends of a tube are pushed along it).
+    """
     grids = np.meshgrid(*[np.arange(n, dtype=np.float32) * np.float32(s)
                           for n, s in zip(shape, spacing)], indexing="ij", sparse=True)
     d = [g - np.float32(c) for g, c in zip(grids, center)]
     if axis is not None:
-        along = d[0] * axis[0] + d[1] * axis[1] + d[2] * axis[2]
-        d = [di - along * np.float32(a) for di, a in zip(d, axis)]
+        length = float(np.linalg.norm(axis))
+        a = np.asarray(axis, dtype=np.float64) / max(length, 1e-12)
+        along = np.clip(d[0] * a[0] + d[1] * a[1] + d[2] * a[2], 0.0, length)
+        d = [di - along * np.float32(ai) for di, ai in zip(d, a)]
     norm = np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2) + np.float32(1e-6)
     return [np.broadcast_to(di / norm, tuple(shape)) for di in d]
 
@@ -348,12 +379,16 @@ class _Run:
         return model
 
     def capture(self, model, edges: NDArray, smooth_mm: float):
-        """The flux of -grad(d), d the distance to the edges (smoothed to be differentiable).
+        """The flux of ``grad(-d)``, d the distance to the edges (smoothed to be differentiable).
 
-        Every patch of the surface is pulled towards its nearest edge with unit strength
-        whatever the distance, so the reach does not depend on a smoothing scale (a wide
-        Gaussian ridge collapses snakes in objects thinner than its width). Its minimum sits
-        about two smoothing widths inside the edge; the refinement takes it from there.
+        Inside an object, ``grad(-d)`` points to the nearest edge, so the flux pulls the surface
+        out towards the edges from any distance, whatever the object's thickness (a wide Gaussian
+        ridge collapses snakes in objects thinner than its width). The pull is the curvature of
+        the distance's level sets: strong in front of round edges, weak in front of large flat
+        walls. Its minimum lies about two smoothing widths inside the edge; the refinement takes
+        it from there. (A region integral of ``r . grad(-d)``, r radial, pulls with unit strength
+        in front of flat walls too, but turns negative in the concave necks of lobed shapes and
+        folds them.)
         """
         from segsnake.lookup import Lookup
 
@@ -365,6 +400,7 @@ class _Run:
         f_d = ndimage.gaussian_filter(-dist, [sigma / x for x in self.sp], mode="nearest")
         del dist
         lookup = Lookup.from_field(f_d, self.sp)
+        del f_d
         self.timings["lookup_s"] += time.perf_counter() - t0
         # -d varies on the scale of sigma only near edges and medial axes: nodes 2 sigma apart.
         return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
@@ -475,7 +511,8 @@ class _Admissible:
         self.start = start
         self.max_interval = max_interval
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
-        rows = np.arange(per_interval, per_interval * (start.m2 - 1))
+        skip = per_interval if start.kind == "sphere" else 0  # the sphere's pole intervals
+        rows = np.arange(skip, per_interval * start.m2 - skip)
         v = (rows + 0.5) / (per_interval * start.m2)
         self.basis = start.grid_basis(u, v)
         self.n0 = self._normals(start.params)
