@@ -19,13 +19,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
 import time
 
 import numpy as np
+from machine import machine_info  # noqa: E402 (benchmarks/ is on sys.path)
 
 SHAPE = (181, 217, 181)
 SPACING = (1.0, 1.0, 1.0)
@@ -101,19 +101,8 @@ def run_one(mode: str, scale_mm: float) -> dict:
 
 
 def machine() -> dict:
-    cpu = "unknown"
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    import scipy
-
-    return {"nproc": os.cpu_count(), "cpu": cpu, "python": platform.python_version(),
-            "numpy": np.__version__, "scipy": scipy.__version__}
+    """See :func:`machine.machine_info`."""
+    return machine_info()
 
 
 def main(argv: list[str] | None = None) -> int:

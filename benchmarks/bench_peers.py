@@ -67,7 +67,6 @@ import argparse
 import itertools
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -76,6 +75,7 @@ from typing import Any, Callable
 
 import numpy as np
 from scipy import ndimage
+from machine import machine_info  # noqa: E402 (benchmarks/ is on sys.path)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -358,32 +358,8 @@ def _run_child(payload: dict) -> dict:
 
 
 def machine() -> dict:
-    cpu = "unknown"
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    import scipy
-    import SimpleITK as sitk
-    import skimage
-
-    info = {"nproc": os.cpu_count(), "cpu": cpu, "python": platform.python_version(),
-            "numpy": np.__version__, "scipy": scipy.__version__, "skimage": skimage.__version__,
-            "SimpleITK": sitk.Version_VersionString(),
-            "itk_threads": sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()}
-    try:
-        info["commit"] = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"],
-                                        capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "segsnake"],
-                               capture_output=True, text=True).stdout.strip()
-        info["segsnake_modified"] = [ln[3:] for ln in dirty.splitlines()]
-    except OSError:
-        pass
-    return info
+    """See :func:`machine.machine_info`."""
+    return machine_info()
 
 
 FAMILY_TITLES = {"ball": "Ball (64^3 at 1 mm, 64 x 64 x 32 at 1 x 1 x 2 mm)",

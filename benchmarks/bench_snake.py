@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -38,6 +37,7 @@ import time
 from typing import Any
 
 import numpy as np
+from machine import machine_info  # noqa: E402 (benchmarks/ is on sys.path)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -80,38 +80,8 @@ def case_config(name: str, init: dict) -> dict:
 
 
 def machine() -> dict:
-    """Where the numbers come from: cores, CPU model, versions, the checkout's state."""
-    cpu = "unknown"
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    import scipy
-    import skimage
-
-    info = {"nproc": os.cpu_count(), "affinity": len(os.sched_getaffinity(0)), "cpu": cpu,
-            "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "skimage": skimage.__version__}
-    try:
-        import SimpleITK as sitk
-
-        info["SimpleITK"] = sitk.Version_VersionString()
-    except Exception:  # noqa: BLE001 - optional in this script
-        pass
-    # Read-only git queries: which code was measured (the pipeline is being tuned).
-    try:
-        info["commit"] = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"],
-                                        capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "segsnake"],
-                               capture_output=True, text=True).stdout.strip()
-        info["segsnake_modified"] = [ln[3:] for ln in dirty.splitlines()]
-    except OSError:
-        pass
-    return info
+    """See :func:`machine.machine_info`."""
+    return machine_info()
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,0 +1,51 @@
+"""Where benchmark numbers come from: cores, CPU model, library versions, the checkout's state.
+
+Shared by the ``bench_*.py`` scripts (they run as scripts, so this directory is on sys.path).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def machine_info() -> dict:
+    """Cores, CPU model, Python/numpy/scipy/scikit-image/SimpleITK versions, git commit."""
+    import numpy as np
+    import scipy
+
+    cpu = "unknown"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    info = {"nproc": os.cpu_count(), "affinity": len(os.sched_getaffinity(0)), "cpu": cpu,
+            "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__}
+    try:
+        import skimage
+
+        info["skimage"] = skimage.__version__
+        import SimpleITK as sitk
+
+        info["SimpleITK"] = sitk.Version_VersionString()
+        info["itk_threads"] = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+    except ImportError:
+        pass
+    # Read-only git queries: which code was measured.
+    try:
+        info["commit"] = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"],
+                                        capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "segsnake"],
+                               capture_output=True, text=True).stdout.strip()
+        info["segsnake_modified"] = [ln[3:] for ln in dirty.splitlines()]
+    except OSError:
+        pass
+    return info
