@@ -38,12 +38,12 @@ class OptimizeResult:
 
 def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300,
                     tol: float = 1e-5, step_tol_mm: float = 1e-3,
-                    max_step_mm: float = 1.0, memory: int = 10,
+                    max_step_mm: float = 1.0, max_step_growth: float = 1.0, memory: int = 10,
                     metric: NDArray | None = None,
                     admissible: Callable[[NDArray], bool] | None = None,
                     bounds_mm: NDArray | None = None,
                     callback: Callable[[int, float], None] | None = None,
-                    min_volume_fraction: float = 0.02) -> OptimizeResult:
+                    min_volume_fraction: float = 0.02, window: int = 5) -> OptimizeResult:
     """Minimize ``energy`` starting from ``model`` with step-limited L-BFGS.
 
     Parameters
@@ -55,9 +55,10 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     max_iter : int
         Cap on quasi-Newton iterations.
     tol : float
-        Stop when the relative energy change of an iteration falls below ``tol``.
+        Stop when the energy decreased by less than ``tol`` (relative) per iteration over the
+        last ``window`` iterations.
     step_tol_mm : float
-        Stop when no control point moved more than this in an iteration.
+        Stop when the surface moved less than this in all of the last ``window`` iterations.
     max_step_mm : float
         No point of the surface moves more than this in one iteration (measured on a grid of
         four samples per knot interval). The flux is computed through the
@@ -65,6 +66,11 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         inside-out surface; an unlimited quasi-Newton step can jump straight into such a
         shape. Capping the step makes the iteration follow the gradient flow of the surface,
         which keeps it embedded, while the L-BFGS direction still gives fast convergence.
+    max_step_growth : float
+        The cap may grow up to this multiple of ``max_step_mm`` while the full capped step keeps
+        being accepted (a trust radius: doubled after a full step, halved after a shortened
+        one, never below ``max_step_mm``), so that a surface travelling a long way in a
+        consistent direction (a tube's end along its vessel) does not crawl.
     memory : int
         Number of L-BFGS correction pairs.
     metric : ndarray (P, P), optional
@@ -82,6 +88,8 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         Progress report after each iteration.
     min_volume_fraction : float
         A volume below this fraction of the initial one counts as a collapse.
+    window : int
+        Number of iterations over which the energy change is measured (see ``tol``).
     """
     sampler = _displacement_operator(model)
     v0 = abs(model.volume(order=4))
@@ -112,6 +120,8 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     s_list: list[NDArray] = []
     y_list: list[NDArray] = []
     converged, message, it = False, f"iteration cap ({max_iter}) reached", 0
+    radius = max_step_mm
+    steps: list[float] = []
     for it in range(1, max_iter + 1):
         d = -_two_loop(g, s_list, y_list, precondition)
         slope = float(np.sum(g * d))
@@ -123,7 +133,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         if slope == 0.0:
             converged, message = True, "zero gradient"
             break
-        found = _line_search(fun, x, f, d, slope, bool(s_list), max_step_mm, displacement,
+        found = _line_search(fun, x, f, d, slope, bool(s_list), radius, displacement,
                              admissible)
         if found is None and s_list:
             # The quasi-Newton direction only leads to refused shapes (a fold): forget the
@@ -145,17 +155,23 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
             if len(s_list) > memory:
                 s_list.pop(0)
                 y_list.pop(0)
-        change = abs(f - f_new)
         step = displacement(s)
+        if step >= 0.99 * radius:
+            radius = min(2.0 * radius, max_step_growth * max_step_mm)
+        elif step < 0.5 * radius:
+            radius = max(0.5 * radius, max_step_mm)
         x, f, g = x_new, f_new, g_new
         history.append(f)
         if callback is not None:
             callback(it, f)
-        if change <= tol * max(abs(f), 1e-12) and it > 1:
+        # The decrease over the last few iterations, not one: a single small step (after an
+        # overshoot, or one shortened to stay admissible) says nothing about convergence.
+        if it >= window and history[-window - 1] - f <= window * tol * max(abs(f), 1e-12):
             converged, message = True, "relative energy change below tol"
             break
-        if step < step_tol_mm:
-            converged, message = True, "step below step_tol_mm"
+        steps.append(step)
+        if it >= window and sum(steps[-window:]) < step_tol_mm:
+            converged, message = True, "steps below step_tol_mm"
             break
     final = model.with_params(x)
     _check_surface(final, v0, bounds_mm, min_volume_fraction)

@@ -85,5 +85,6 @@ def test_snake_in_empty_space_is_a_failure_not_a_mask():
     image = np.zeros((32, 32, 32), np.float32)
     image[16, 16, 16] = 100.0
     config = SegmentConfig.from_mapping({"center": [5, 5, 5], "radii": [3, 3, 3]})
-    with pytest.raises(SegmentationError, match="no boundary found"):
+    # Depending on how fast it shrinks, the snake either collapses or stops on nothing.
+    with pytest.raises(SegmentationError, match="no boundary found|collapsed"):
         segment_volume(image, (1.0, 1.0, 1.0), config)
