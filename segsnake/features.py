@@ -606,6 +606,7 @@ def edge_map(
     seed: Sequence[float] | None = None,
     smooth_mm: float | None = None,
     curvature_correction: bool = True,
+    region: np.ndarray | None = None,
 ) -> EdgeMap:
     """Detect surfaces and build the smooth edge map ``f``.
 
@@ -635,6 +636,10 @@ def edge_map(
         Standard deviation in mm of the Gaussian that makes ``f`` smooth
         (default: the largest voxel size, so the voxel staircase is smoothed
         along every axis).
+    region : bool ndarray, shape (nx, ny, nz), optional
+        Only voxels where this is True can be edges (and only they are tested by the
+        non-maximum suppression, the costly step: restricting it to where the boundary can be
+        saves most of the time).
     curvature_correction : bool
         Move each sub-voxel point by the detector's known curvature bias
         (``c * scale_mm**2 * (k1 + k2) / 2`` away from the centre of
@@ -684,6 +689,8 @@ def edge_map(
     candidates = response > floor
     if valid is not None:
         candidates &= valid
+    if region is not None:
+        candidates &= region
 
     levels: tuple[float, float] | None = None
     if threshold is not None:

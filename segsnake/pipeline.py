@@ -37,7 +37,7 @@ from scipy import ndimage
 
 from segsnake.energy import AreaTerm, FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
-from segsnake.optimize import minimize_energy, surface_metric
+from segsnake.optimize import minimize_energy
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
@@ -52,18 +52,16 @@ REGULARIZATION = 1.0
 INNER_FACE_DEPTH_MM = 10.0
 #: Below this mean edge strength under the final surface the segmentation is a failure.
 MIN_EDGE_SUPPORT = 0.15
-#: A-priori quadrature: nodes this many feature widths apart (see :func:`quadrature_order`) ...
+#: A-priori quadrature: nodes this many feature widths apart (see :func:`quadrature_order`),
+#: or CAPTURE_NODE_SPACING in the capture stage (see :meth:`_Run.capture`), ...
 NODE_SPACING = 2.0
 CAPTURE_NODE_SPACING = 0.75
-SOBOLEV_CAPTURE = False
 #: ... at most this many per knot interval ...
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
 QUADRATURE_RTOL = 2e-3
 #: The optimizer's step cap (the stage's band) may grow to this multiple on long travels.
 MAX_STEP_GROWTH = 4.0
-#: Weight of the internal energy's Hessian in the optimizer's metric (see :func:`_stage_energy`).
-METRIC_BENDING = 10.0
 #: Surface tension of cylinder snakes, in units of the edge map's peak (see :func:`_stage_energy`).
 CYLINDER_TENSION = 0.2
 
@@ -327,13 +325,14 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         t0 = time.perf_counter()
         # Every step that survives non-maximum suppression, thresholded among the candidates
         # of the band only: the inner face can be far weaker than the sheet's outer face.
-        face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None)
         inside = rasterize(model, shape, sp)
         depth = ndimage.distance_transform_edt(inside, sampling=sp)
+        band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale))
+        del depth
+        face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None, region=band)
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         radial = _radial_field(shape, sp, *_center_and_axis(model))
-        facing = -pol * _dot(face.normals, radial) >= 0.5
-        band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale)) & facing
+        band &= -pol * _dot(face.normals, radial) >= 0.5  # steps that face the sheet
         low, high = auto_levels(face.response[face.mask & band])
         _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
         run.timings["edge_map_s"] += time.perf_counter() - t0
@@ -382,10 +381,9 @@ class _Run:
         self.iterations = 0
         self.timings: dict[str, float] = {"lookup_s": 0.0, "optimize_s": 0.0}
 
-    def _stage(self, name, model, lookup, band, feature_mm, tol=None, sobolev=True,
-               node_spacing=None):
+    def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None):
         model, res = _run_stage(model, lookup, -1.0, self.config, self.bounds, self.extra, band,
-                                feature_mm, tol, sobolev, node_spacing or NODE_SPACING)
+                                feature_mm, tol, node_spacing)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         self.history.append({"stage": name, **res})
@@ -416,14 +414,12 @@ class _Run:
         del f_d
         self.timings["lookup_s"] += time.perf_counter() - t0
         # -d varies on the scale of sigma only near edges and medial axes: nodes 2 sigma apart.
-        # Capture follows the plain L2 flow (no Sobolev metric): it stops at the first minimum
-        # it meets. Its energy also has deeper minima that leak through gaps in the edges
-        # towards the largest empty region, which the Sobolev flow reaches (measured on a ball
-        # with a touching neighbour, with the shape prior: -951 shifted 5 mm into the neighbour,
-        # against -849 in place), and the refinement cannot pull back from there.
+        # The capture surface crosses the features of -d on its way out, so its a-priori
+        # quadrature is fine from the start: a coarse first round can run into a spurious
+        # minimum that the finer rounds do not leave (measured on the PD brain: -28311 against
+        # -51907, Dice 0.53).
         return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
-                           2 * sigma, tol=1e-4, sobolev=SOBOLEV_CAPTURE,
-                           node_spacing=CAPTURE_NODE_SPACING)
+                           2 * sigma, tol=1e-4, node_spacing=CAPTURE_NODE_SPACING)
 
     def refine(self, model, em, out: NDArray, feature_mm: float):
         """The region integral of n_out . grad f, n_out the detected normal oriented outward.
@@ -487,7 +483,7 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
-               sobolev=True, node_spacing=None):
+               node_spacing=None):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -505,11 +501,10 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         max_interval = 1.5 * longest_intervals(model)
         order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
                       for length, lo in zip(max_interval, floor))
-        energy, metric = _stage_energy(model, lookup, weight, order, extra_energy,
-                                       band if sobolev else None)
+        energy = _stage_energy(model, lookup, weight, order, extra_energy)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
                               tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
-                              max_step_growth=MAX_STEP_GROWTH, metric=metric,
+                              max_step_growth=MAX_STEP_GROWTH,
                               admissible=_Admissible(model, max_interval))
         model = res.model
         iterations += res.iterations
@@ -569,36 +564,16 @@ class _Admissible:
         return bool(np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0))
 
 
-def _stage_energy(model, lookup, weight, order, extra_energy, band):
-    """The stage's energy, and the metric its optimizer preconditions with.
-
-    The metric is the surface's L2 mass matrix, plus (for a sphere, unless ``band`` is None) the
-    internal energy's constant Hessian scaled to the image energy's curvature: a Sobolev metric.
-    With the L2 metric alone the bending term's stiff high-frequency modes make L-BFGS crawl
-    (measured on a blob: 267 refinement iterations, against 57 with this metric).
-    """
+def _stage_energy(model, lookup, weight, order, extra_energy):
     flux = FluxTerm(model, lookup, weight=weight, order=order)
     terms = [flux]
-    metric = surface_metric(model)
     if REGULARIZATION > 0:
         # Internal energy: bending of the deviation from the nearest ellipsoid (elliptic
         # cylinder), scaled so that a deviation of the size of the surface's radius costs about
         # REGULARIZATION times the stage's image energy.
         e0 = abs(flux.value_and_grad(model.params)[0])
         r = _model_radius(model)
-        bending = BendingRegularizer(model, weight=REGULARIZATION * max(e0, 1e-12) / r ** 2)
-        terms.append(bending)
-    if REGULARIZATION > 0 and band is not None and model.kind == "sphere":
-        # (Not for cylinders: their cheapest Sobolev mode is the affine shortening along the
-        # axis, which the surface tension then drives before the wall is reached; measured on
-        # Table 7.2, seed 1: Jaccard 0.47-0.59 at std 0, 30, 50 against 0.97 with the L2 flow.)
-        # The image energy's curvature per unit area is about e0 / (area * band^2) (it changes
-        # by its own size when the surface moves by a ridge width); the bending Hessian is
-        # 2 w K, so relative to the mass matrix it enters with 2 w / that curvature.
-        # That estimate is rough; METRIC_BENDING scales it (measured on the PD brain: 125
-        # refinement iterations at 1, 54 at 10, 52 at 100).
-        metric = metric + (METRIC_BENDING * 2 * REGULARIZATION * model.area(order=4) * band ** 2
-                           / r ** 2) * bending.K
+        terms.append(BendingRegularizer(model, weight=REGULARIZATION * max(e0, 1e-12) / r ** 2))
     if model.kind == "cylinder":
         # The open ends feel no flux: without tension they drift past the ends of the
         # structure. Tension makes surface without edge support cost a fraction of what
@@ -606,4 +581,4 @@ def _stage_energy(model, lookup, weight, order, extra_energy, band):
         terms.append(AreaTerm(model, weight=CYLINDER_TENSION, order=order))
     if extra_energy is not None:
         terms.append(extra_energy(model))
-    return SumEnergy(terms), metric
+    return SumEnergy(terms)
