@@ -38,7 +38,7 @@ class OptimizeResult:
 
 def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300,
                     tol: float = 1e-5, step_tol_mm: float = 1e-3,
-                    max_step_mm: float = 1.0, max_step_growth: float = 1.0, memory: int = 10,
+                    max_step_mm: float = 1.0, memory: int = 10,
                     metric: NDArray | None = None,
                     admissible: Callable[[NDArray], bool] | None = None,
                     bounds_mm: NDArray | None = None,
@@ -66,11 +66,6 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         inside-out surface; an unlimited quasi-Newton step can jump straight into such a
         shape. Capping the step makes the iteration follow the gradient flow of the surface,
         which keeps it embedded, while the L-BFGS direction still gives fast convergence.
-    max_step_growth : float
-        The cap may grow up to this multiple of ``max_step_mm`` while the full capped step keeps
-        being accepted (a trust radius: doubled after a full step, halved after a shortened
-        one, never below ``max_step_mm``), so that a surface travelling a long way in a
-        consistent direction (a tube's end along its vessel) does not crawl.
     memory : int
         Number of L-BFGS correction pairs.
     metric : ndarray (P, P), optional
@@ -120,7 +115,6 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     s_list: list[NDArray] = []
     y_list: list[NDArray] = []
     converged, message, it = False, f"iteration cap ({max_iter}) reached", 0
-    radius = max_step_mm
     steps: list[float] = []
     for it in range(1, max_iter + 1):
         d = -_two_loop(g, s_list, y_list, precondition)
@@ -133,7 +127,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         if slope == 0.0:
             converged, message = True, "zero gradient"
             break
-        found = _line_search(fun, x, f, d, slope, bool(s_list), radius, displacement,
+        found = _line_search(fun, x, f, d, slope, bool(s_list), max_step_mm, displacement,
                              admissible)
         if found is None and s_list:
             # The quasi-Newton direction only leads to refused shapes (a fold): forget the
@@ -156,10 +150,6 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
                 s_list.pop(0)
                 y_list.pop(0)
         step = displacement(s)
-        if step >= 0.99 * radius:
-            radius = min(2.0 * radius, max_step_growth * max_step_mm)
-        elif step < 0.5 * radius:
-            radius = max(0.5 * radius, max_step_mm)
         x, f, g = x_new, f_new, g_new
         history.append(f)
         if callback is not None:

@@ -60,8 +60,6 @@ CAPTURE_NODE_SPACING = 0.75
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
 QUADRATURE_RTOL = 2e-3
-#: The optimizer's step cap (the stage's band) may grow to this multiple on long travels.
-MAX_STEP_GROWTH = 4.0
 #: Surface tension of cylinder snakes, in units of the edge map's peak (see :func:`_stage_energy`).
 CYLINDER_TENSION = 0.2
 
@@ -504,7 +502,6 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         energy = _stage_energy(model, lookup, weight, order, extra_energy)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
                               tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
-                              max_step_growth=MAX_STEP_GROWTH,
                               admissible=_Admissible(model, max_interval))
         model = res.model
         iterations += res.iterations

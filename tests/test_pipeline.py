@@ -88,3 +88,26 @@ def test_snake_in_empty_space_is_a_failure_not_a_mask():
     # Depending on how fast it shrinks, the snake either collapses or stops on nothing.
     with pytest.raises(SegmentationError, match="no boundary found|collapsed"):
         segment_volume(image, (1.0, 1.0, 1.0), config)
+
+
+def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
+    # A narrow Gaussian blob (width 0.25) that the a-priori order (from a 16x too wide feature
+    # size) samples too coarsely: order 4 is off by about 0.2 % there, order 8 by 1e-7. With a
+    # tolerance between the two, the stage must move on to order 8 and stop there.
+    from test_energy import AnalyticSampler
+
+    from segsnake import pipeline
+    from segsnake.energy import FluxTerm
+    from segsnake.surfaces import SphereModel
+
+    monkeypatch.setattr(pipeline, "QUADRATURE_RTOL", 1e-4)
+    sampler = AnalyticSampler("blob", s=0.25)
+    model = SphereModel.ellipsoid([0.1, -0.05, 0.0], [0.5, 0.6, 0.45], m1=6, m2=6)
+    assert pipeline.quadrature_order(1.5 * max(pipeline.longest_intervals(model)), 4.0) == 4
+    out, info = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
+                                    feature_mm=4.0)
+    checks = info["quadrature_checks"]
+    assert [c["order"] for c in checks] == [[4, 4], [8, 8]]
+    assert checks[0]["relative_error"] > 1e-4 >= checks[1]["relative_error"]
+    e8, e16 = (FluxTerm(out, sampler, order=o).value_and_grad(out.params)[0] for o in (8, 16))
+    assert abs(e8 - e16) <= 1e-4 * abs(e16)
