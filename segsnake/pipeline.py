@@ -41,7 +41,7 @@ from segsnake.optimize import minimize_energy
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
-__all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
+__all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init", "flux_frame"]
 
 Progress = Callable[[str, float], None]
 
@@ -264,18 +264,75 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     extra_energy : callable(model) -> Energy, optional
         Added to every stage (the shape prior plugs in here).
     """
+    sp = tuple(float(s) for s in spacing)
+    t0 = time.perf_counter()
+    model = initial_model(config, sp, image.shape, index_from_world, image)
+    init_s = time.perf_counter() - t0
+    perm = flux_frame(model)
+    if perm is None:
+        return _segment(image, sp, config, model, progress, extra_energy, init_s)
+    # Work in the frame whose first axis (the lookup's integration axis) is the one most
+    # perpendicular to the cylinder: there the open ends' missing caps carry no flux. A cyclic
+    # permutation of the axes is a rotation, so the snake's orientation is unchanged.
+    inv = np.argsort(perm)
+    seed = None if config.seed_point is None else [config.seed_point[k] for k in perm]
+    extra = None if extra_energy is None else \
+        (lambda m: _InFrame(extra_energy(_permuted(m, inv)), perm))
+    res = _segment(np.ascontiguousarray(np.transpose(image, perm)), tuple(sp[k] for k in perm),
+                   config.replace(seed_point=seed), _permuted(model, perm), progress, extra,
+                   init_s)
+    res.model = _permuted(res.model, inv)
+    res.init_model = model
+    res.mask = np.ascontiguousarray(np.transpose(res.mask, inv))
+    res.settings["integration_axis"] = int(perm[0])
+    return res
+
+
+def flux_frame(model: SplineSurface) -> tuple[int, int, int] | None:
+    """Axis order that puts the lookup's integration axis across a cylinder (None: keep x).
+
+    The flux of an open cylinder is integrated over its lateral surface only, which is the
+    closed-surface flux when the (planar) end caps carry no ``G n_x``: when the cylinder's axis
+    is perpendicular to the integration axis. So the integration runs along the array axis with
+    the smallest component of the cylinder's axis (x on a tie): exact for a cylinder along any
+    array axis. A cyclic order is returned (a rotation, orientation-preserving).
+    """
+    if model.kind != "cylinder":
+        return None
+    _, axis = _center_and_axis(model)
+    a = np.abs(axis) / max(float(np.linalg.norm(axis)), 1e-300)
+    k = int(np.argmin(a))
+    if a[k] >= a[0] - 1e-9:
+        return None
+    return (k, (k + 1) % 3, (k + 2) % 3)
+
+
+def _permuted(model: SplineSurface, perm) -> SplineSurface:
+    """The same snake with its coordinates reordered (``new[:, j] = old[:, perm[j]]``)."""
+    return model.with_params(model.params[:, list(perm)])
+
+
+class _InFrame:
+    """An energy of the original frame, evaluated on a snake in the permuted frame."""
+
+    def __init__(self, energy, perm) -> None:
+        self.energy, self.perm, self.inv = energy, list(perm), list(np.argsort(perm))
+
+    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+        value, grad = self.energy.value_and_grad(params[:, self.inv])
+        return value, grad[:, self.perm]
+
+
+def _segment(image, sp, config, model, progress, extra_energy, init_s) -> SegmentResult:
+    """:func:`segment_volume` from the initial snake on, in the frame of ``image``."""
     from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
-    sp = tuple(float(s) for s in spacing)
     shape = image.shape
     report = progress or (lambda stage, frac: None)
     run = _Run(config, sp, shape, extra_energy)
-
-    t0 = time.perf_counter()
-    model = initial_model(config, sp, shape, index_from_world, image)
     init = model
-    run.timings["init_s"] = time.perf_counter() - t0
+    run.timings["init_s"] = init_s
 
     t0 = time.perf_counter()
     scale = config.scale if config.scale is not None else max(1.0, 1.5 * max(sp))
