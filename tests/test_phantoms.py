@@ -425,11 +425,7 @@ def test_make_sets_writes_volumes_and_a_batch_file(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_full_size_brain_is_quick_enough():
-    import time
-
-    t0 = time.perf_counter()
+def test_full_size_brain_has_the_brainweb_grid():
     ph = P.brain(0, noise=0.09, bias=0.4, contrast="pd")
-    elapsed = time.perf_counter() - t0
-    assert ph.truth.shape == (181, 217, 181)
-    assert elapsed < 6.0  # ~2 s on a 2-core machine
+    assert ph.truth.shape == ph.image.shape == (181, 217, 181)
+    assert tuple(ph.spacing) == (1.0, 1.0, 1.0)
