@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["Sampler", "Energy", "FluxTerm", "AreaTerm", "SumEnergy", "flux_integrand_grads"]
+__all__ = ["Sampler", "Energy", "FluxTerm", "AxialTension", "SumEnergy", "flux_integrand_grads"]
 
 
 class Sampler(Protocol):
@@ -116,28 +116,29 @@ class SumEnergy:
 
 
 @dataclass
-class AreaTerm:
-    """``weight * area``: surface tension, ``sum W |sigma_u x sigma_v|`` with its exact gradient.
+class AxialTension:
+    """``weight * |c1 - c0|``: a pull between the end rings' centres of an open cylinder.
 
-    With ``n = sigma_v x sigma_u`` and ``m = n / |n|``, ``d|n| = (m x sigma_v) . d sigma_u +
-    (sigma_u x m) . d sigma_v``.
+    ``c0`` and ``c1`` are the mean points of the rings ``sigma(u, 0)`` and ``sigma(u, 1)``
+    (over u: the mean of the control grid's rows weighted by the axial basis at v = 0 and 1,
+    since every periodic basis function has the same integral). Unlike the surface area, whose
+    gradient is also a pressure of ``weight * (k1 + k2)`` on the whole lateral surface, this
+    acts only along the axis: it pulls the ends in where no edge holds them, and leaves the
+    radius to the image.
     """
 
     model: SplineSurface
     weight: float = 1.0
-    order: int | tuple[int, int] = 4
 
     def __post_init__(self) -> None:
-        self.basis, self.weights = self.model.quadrature(self.order)
+        self.ends = self.model._basis_v(np.array([0.0, 1.0]), 0)  # (2, L)
 
     def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
         C = self.model.control_points(params)
-        _, su, sv = self.basis.evaluate(C)
-        n = np.cross(sv, su)
-        norm = np.linalg.norm(n, axis=-1)
-        m = n / np.maximum(norm, 1e-300)[..., None]
-        w = self.weights[..., None]
-        g_u = w * np.cross(m, sv)
-        g_v = w * np.cross(su, m)
-        grad = self.model.grid_gradient_to_params(self.basis.adjoint(np.zeros_like(su), g_u, g_v))
-        return self.weight * float(np.sum(self.weights * norm)), self.weight * grad
+        rows = C.mean(axis=0)  # (L, 3)
+        d = (self.ends[1] - self.ends[0]) @ rows
+        length = float(np.linalg.norm(d))
+        e = d / max(length, 1e-300)
+        grad_C = np.broadcast_to((self.ends[1] - self.ends[0])[None, :, None] * e / self.model.m1,
+                                 C.shape)
+        return self.weight * length, self.weight * self.model.grid_gradient_to_params(grad_C)

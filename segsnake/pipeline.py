@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from segsnake.energy import AreaTerm, FluxTerm, SumEnergy
+from segsnake.energy import AxialTension, FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.optimize import minimize_energy
 from segsnake.regularize import BendingRegularizer
@@ -630,9 +630,14 @@ def _stage_energy(model, lookup, weight, order, extra_energy):
         terms.append(BendingRegularizer(model, weight=REGULARIZATION * max(e0, 1e-12) / r ** 2))
     if model.kind == "cylinder":
         # The open ends feel no flux: without tension they drift past the ends of the
-        # structure. Tension makes surface without edge support cost a fraction of what
-        # surface on an edge gains (the edge map peaks at about 1 per mm^2).
-        terms.append(AreaTerm(model, weight=CYLINDER_TENSION, order=order))
+        # structure. Tension makes a tube's length without edge support cost a fraction of what
+        # surface on an edge gains (the edge map peaks at about 1 per mm^2): CYLINDER_TENSION
+        # per mm^2 of lateral surface, as a pull along the axis only. (Surface tension, the
+        # area, also presses on the whole lateral surface with CYLINDER_TENSION / radius, which
+        # held tubes whose capture ended 4-5 mm inside the wall out of the refinement's reach:
+        # a tube along (1, 1, 0) shrank to Jaccard 0.32; 0.969 with the axial pull.)
+        perimeter = 2 * math.pi * _model_radius(model)
+        terms.append(AxialTension(model, weight=CYLINDER_TENSION * perimeter))
     if extra_energy is not None:
         terms.append(extra_energy(model))
     return SumEnergy(terms)

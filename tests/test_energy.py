@@ -95,13 +95,22 @@ def test_minimizing_blob_flux_grows_sphere_to_the_laplacian_zero_crossing():
     assert np.abs(np.linalg.norm(sig, axis=-1) - r_star).max() < 0.02
 
 
-@pytest.mark.parametrize("model", [SphereModel.unit(6, 5), CylinderModel.unit(6, 3)])
-def test_area_term_value_and_gradient(model):
-    from segsnake.energy import AreaTerm
+def test_axial_tension_is_the_distance_between_the_end_rings_centres():
+    from segsnake.energy import AxialTension
 
-    model = _perturbed(model.transformed(np.diag([2.0, 3.0, 1.5]), [1, 2, 3]), 4, 0.1)
-    term = AreaTerm(model, weight=0.5, order=8)
+    model = CylinderModel.from_axis([1, 2, 3], [9, 4, 2], 2.0, m1=6, m2=3)
+    model = _perturbed(model, 4, 0.2)
+    term = AxialTension(model, weight=0.7)
     value, grad = term.value_and_grad(model.params)
-    assert abs(value - 0.5 * model.area()) < 1e-9
+    r0, r1 = model.end_rings(4000)  # the rings' mean points by dense sampling
+    assert abs(value - 0.7 * np.linalg.norm(r1.mean(axis=0) - r0.mean(axis=0))) < 1e-9
     fd = central_difference_gradient(term, model.params)
     assert np.linalg.norm(grad - fd) / np.linalg.norm(fd) < 1e-6
+    # A pull along the axis only: scaling the tube scales it, widening alone costs nothing.
+    assert abs(term.value_and_grad(model.transformed(1.3 * np.eye(3)).params)[0]
+               - 1.3 * value) < 1e-9
+    a = (r1.mean(axis=0) - r0.mean(axis=0)) / np.linalg.norm(r1.mean(axis=0) - r0.mean(axis=0))
+    widen = np.eye(3) + 0.5 * (np.eye(3) - np.outer(a, a))  # stretch across the axis only
+    c = r0.mean(axis=0)
+    assert abs(term.value_and_grad(model.transformed(widen, c - widen @ c).params)[0]
+               - value) < 1e-9
