@@ -20,7 +20,7 @@ How the surface gets onto the boundary (design.md, "Where the minimum sits"):
    CSF), capture and refinement again on the steps just inside the sheet.
 
 Every stage minimizes its image term plus the internal energy (:mod:`segsnake.regularize`),
-plus surface tension for open cylinders and the user's shape prior, with the step-limited,
+plus an axial pull on open cylinders' ends and the user's shape prior, with the step-limited,
 fold-refusing L-BFGS of :mod:`segsnake.optimize`.
 """
 
@@ -60,7 +60,8 @@ CAPTURE_NODE_SPACING = 0.75
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
 QUADRATURE_RTOL = 2e-3
-#: Surface tension of cylinder snakes, in units of the edge map's peak (see :func:`_stage_energy`).
+#: Tension of cylinder snakes per mm^2 of lateral surface, in units of the edge map's peak,
+#: applied as a pull along the axis (see :func:`_stage_energy`).
 CYLINDER_TENSION = 0.2
 
 
