@@ -58,7 +58,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         Stop when the energy decreased by less than ``tol`` (relative) per iteration over the
         last ``window`` iterations.
     step_tol_mm : float
-        Stop when the surface moved less than this in all of the last ``window`` iterations.
+        Stop when the surface moved less than this in the last ``window`` iterations together.
     max_step_mm : float
         No point of the surface moves more than this in one iteration (measured on a grid of
         four samples per knot interval). The flux is computed through the
@@ -86,6 +86,8 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     window : int
         Number of iterations over which the energy change is measured (see ``tol``).
     """
+    if window < 1:
+        raise ValueError(f"window must be at least 1, got {window}")
     sampler = _displacement_operator(model)
     v0 = abs(model.volume(order=4))
     nfev = 0

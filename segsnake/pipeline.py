@@ -271,6 +271,10 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     t0 = time.perf_counter()
     model = initial_model(config, sp, image.shape, index_from_world, image)
     init_s = time.perf_counter() - t0
+    if config.world and config.seed_point is not None and index_from_world is not None:
+        # The seed point is a position like the others: world mm with --world.
+        seed_idx = index_from_world(np.asarray(config.seed_point, dtype=np.float64)[None])[0]
+        config = config.replace(seed_point=[float(x) for x in seed_idx])
     perm = flux_frame(model)
     if perm is None:
         return _segment(image, sp, config, model, progress, extra_energy, init_s)
@@ -550,11 +554,14 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     twice the order must agree to ``QUADRATURE_RTOL``, else the next round runs at the finer
     order. The check matters: an under-resolved quadrature is not just inaccurate, the optimizer
     *exploits* it (it grows a spike whose few nodes all sit on favourable values; measured: order
-    4 gave -104695 where order 16 gives -92674 on a noisy ball).
+    4 gave -104695 where order 16 gives -92674 on a noisy ball). A stage stopped by the
+    iteration cap is checked too; ``quadrature_resolved`` in its history says whether the last
+    check agreed (``segment`` warns when not).
     """
     t0 = time.perf_counter()
     iterations, evaluations, history, checks = 0, 0, [], []
     floor = np.array([4, 4])
+    resolved = False
     for _ in range(8):
         max_interval = 1.5 * longest_intervals(model)
         order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
@@ -567,22 +574,24 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         iterations += res.iterations
         evaluations += res.evaluations
         history += res.history
-        if iterations >= config.max_iter:
-            break
-        if np.any(longest_intervals(model) >= 0.9 * max_interval):
+        capped = iterations >= config.max_iter
+        if not capped and np.any(longest_intervals(model) >= 0.9 * max_interval):
             continue
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
         if fine == order:
+            resolved = True
             break
         coarse_e = FluxTerm(model, lookup, weight=weight, order=order).value_and_grad(model.params)[0]
         fine_e = FluxTerm(model, lookup, weight=weight, order=fine).value_and_grad(model.params)[0]
         error = abs(fine_e - coarse_e) / max(abs(fine_e), 1e-300)
         checks.append({"order": list(order), "relative_error": error})
-        if error <= QUADRATURE_RTOL:
+        resolved = error <= QUADRATURE_RTOL
+        if resolved or capped:
             break
         floor = np.array(fine)
     return model, {"energy": res.energy, "iterations": iterations, "quadrature_order": order,
-                   "quadrature_checks": checks, "volume_mm3": model.volume(order=4),
+                   "quadrature_checks": checks, "quadrature_resolved": resolved,
+                   "volume_mm3": model.volume(order=4),
                    "evaluations": evaluations, "converged": res.converged,
                    "message": res.message, "history": history,
                    "time_s": time.perf_counter() - t0}

@@ -150,7 +150,10 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         "energy": result.energy,
         "iterations": result.iterations,
         "polarity": result.polarity,
-        "warnings": list(volume.warnings),
+        "warnings": list(volume.warnings) + [
+            f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
+            f"its order (iteration or round cap reached): the surface may be less accurate"
+            for i, h in enumerate(result.history) if not h.get("quadrature_resolved", True)],
     }
     if truth is not None:
         metrics = evaluate_masks(result.mask, truth, volume.spacing)

@@ -145,3 +145,46 @@ def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
     assert checks[0]["relative_error"] > 1e-4 >= checks[1]["relative_error"]
     e8, e16 = (FluxTerm(out, sampler, order=o).value_and_grad(out.params)[0] for o in (8, 16))
     assert abs(e8 - e16) <= 1e-4 * abs(e16)
+
+
+def test_seed_point_is_a_world_position_with_world(monkeypatch):
+    # With --world every position is in world mm, the seed point too (it used to be read as
+    # voxel indices whatever --world said).
+    from segsnake import features
+
+    ph = make_phantom("ball", seed=3, noise=0.1)
+    seen = []
+    real = features.edge_map
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("seed"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(features, "edge_map", spy)
+    shift = np.array([100.0, -50.0, 20.0])  # world = index * spacing + shift (spacing 1 mm)
+    centre = np.asarray(ph.init["center"], dtype=float)
+    config = SegmentConfig.from_mapping({
+        "world": True, "center": list(centre + shift), "radii": ph.init["radii"],
+        "seed_point": list(centre + shift)})
+    res = segment_volume(ph.image, ph.spacing, config, index_from_world=lambda p: p - shift)
+    assert np.allclose(seen[0], centre)
+    assert dice(res.mask, ph.truth.astype(bool)) >= 0.95
+
+
+def test_stage_stopped_by_the_iteration_cap_reports_its_quadrature():
+    from test_energy import AnalyticSampler
+
+    from segsnake import pipeline
+    from segsnake.surfaces import SphereModel
+
+    sampler = AnalyticSampler("blob", s=0.25)
+    model = SphereModel.ellipsoid([0.1, -0.05, 0.0], [0.5, 0.6, 0.45], m1=6, m2=6)
+    capped = SegmentConfig.from_mapping({"max_iter": 3})
+    _, info = pipeline._run_stage(model, sampler, -1.0, capped, None, None, 0.1, feature_mm=4.0)
+    assert info["iterations"] == 3 and len(info["quadrature_checks"]) == 1
+    # Checked even though the cap stopped it, and resolved exactly when the check agreed.
+    error = info["quadrature_checks"][0]["relative_error"]
+    assert info["quadrature_resolved"] is (error <= pipeline.QUADRATURE_RTOL)
+    _, full = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
+                                  feature_mm=4.0)
+    assert full["quadrature_resolved"] is True
