@@ -75,7 +75,7 @@ from typing import Any, Callable
 
 import numpy as np
 from scipy import ndimage
-from machine import machine_info  # noqa: E402 (benchmarks/ is on sys.path)
+from machine import machine_info, report  # noqa: E402 (benchmarks/ is on sys.path)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -486,11 +486,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[bench_peers] {vol['name']}: {res.get('error', brief)}", file=sys.stderr,
               flush=True)
     info["total_s"] = time.perf_counter() - t0
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(info, fh, indent=2)
-    print(markdown(info))
-    return 0
+    return report(info, args.json, markdown)
 
 
 if __name__ == "__main__":

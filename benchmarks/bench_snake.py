@@ -37,7 +37,7 @@ import time
 from typing import Any
 
 import numpy as np
-from machine import machine_info  # noqa: E402 (benchmarks/ is on sys.path)
+from machine import machine_info, report  # noqa: E402 (benchmarks/ is on sys.path)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -410,11 +410,7 @@ def main(argv: list[str] | None = None) -> int:
         if "error" in info["energy"]:
             print(f"[bench_snake] energy: {info['energy']['error']}", file=sys.stderr)
             info["energy"] = None
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(info, fh, indent=2)
-    print(markdown(info))
-    return 0
+    return report(info, args.json, markdown)
 
 
 if __name__ == "__main__":

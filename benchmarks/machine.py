@@ -5,9 +5,11 @@ Shared by the ``bench_*.py`` scripts (they run as scripts, so this directory is 
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
+from typing import Callable
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -49,3 +51,12 @@ def machine_info() -> dict:
     except OSError:
         pass
     return info
+
+
+def report(info: dict, json_path: str | None, markdown: Callable[[dict], str]) -> int:
+    """Write the raw numbers to ``json_path`` (if given), print the markdown; exit status 0."""
+    if json_path:
+        with open(json_path, "w") as fh:
+            json.dump(info, fh, indent=2)
+    print(markdown(info))
+    return 0
