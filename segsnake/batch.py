@@ -72,6 +72,7 @@ from segsnake.config import (
     suggest,
 )
 from segsnake.errors import ConfigError, InputError, OutputError, SegsnakeError
+from segsnake.parallel import set_threads, threads as parallel_threads
 
 __all__ = [
     "BatchCase",
@@ -562,9 +563,10 @@ def _die_with_batch(alive: multiprocessing.connection.Connection) -> None:
 
 def _child_main(runner: str, case: dict[str, Any], sys_path: list[str],
                 conn: multiprocessing.connection.Connection,
-                alive: multiprocessing.connection.Connection) -> None:
-    """Entry point of the one process that runs one case."""
+                alive: multiprocessing.connection.Connection, threads: int) -> None:
+    """Entry point of the one process that runs one case (with ``threads`` threads)."""
     _die_with_batch(alive)
+    set_threads(threads)
     record = execute_case(runner, case, sys_path)
     with contextlib.suppress(Exception):
         conn.send(record)
@@ -774,8 +776,9 @@ def _describe_exit(code: int | None) -> str:
 
 def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: float | None,
                on_record: Callable[[dict[str, Any]], None]) -> None:
-    """One fresh process per case, at most ``workers`` at a time."""
+    """One fresh process per case, at most ``workers`` at a time, sharing the CPUs."""
     ctx = _mp_context(runner)
+    threads = max(1, parallel_threads() // workers)
     pending = deque(jobs)
     running: list[_Running] = []
     sys_path = list(sys.path)
@@ -786,7 +789,8 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
             while pending and len(running) < workers:
                 job = pending.popleft()
                 recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child_main, args=(runner, job, sys_path, send, alive_r),
+                proc = ctx.Process(target=_child_main, args=(runner, job, sys_path, send, alive_r,
+                                                                threads),
                                    name=f"segsnake-case-{job['name']}")
                 proc.start()
                 send.close()  # the child holds the only write end: EOF means it is gone

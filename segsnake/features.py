@@ -64,6 +64,7 @@ import numpy as np
 from scipy import ndimage
 
 from segsnake.errors import SegmentationError
+from segsnake.parallel import gaussian_filter, spline_filter, thread_map
 
 __all__ = [
     "EdgeMap",
@@ -137,21 +138,22 @@ def gaussian_derivatives(
     out: dict[tuple[int, int, int], np.ndarray] = {}
     level: dict[tuple[int, ...], np.ndarray] = {(): src}
     for axis in range(3):
-        nxt: dict[tuple[int, ...], np.ndarray] = {}
         needed = {od[: axis + 1] for od in wanted}
-        for prefix, arr in level.items():
-            for o in range(3):
-                key = prefix + (o,)
-                if key not in needed:
-                    continue
-                res = ndimage.gaussian_filter1d(
-                    arr, sig[axis], axis=axis, order=o, mode="nearest",
-                    truncate=_TRUNCATE, output=np.float32,
-                )
-                if o:
-                    res *= np.float32(1.0 / sp[axis] ** o)
-                nxt[key] = res
-        level = nxt
+        passes = [(prefix, o) for prefix in level for o in range(3) if prefix + (o,) in needed]
+
+        def one_pass(job: tuple[tuple[int, ...], int], axis: int = axis) -> np.ndarray:
+            prefix, o = job
+            res = ndimage.gaussian_filter1d(
+                level[prefix], sig[axis], axis=axis, order=o, mode="nearest",
+                truncate=_TRUNCATE, output=np.float32,
+            )
+            if o:
+                res *= np.float32(1.0 / sp[axis] ** o)
+            return res
+
+        # The passes of one axis are independent: they run in parallel threads.
+        level = {prefix + (o,): res
+                 for (prefix, o), res in zip(passes, thread_map(one_pass, passes))}
     for od in wanted:
         out[od] = level[od]
     return out
@@ -294,7 +296,7 @@ def step_detector(
 
 
 def _spline(response: np.ndarray) -> np.ndarray:
-    return ndimage.spline_filter(response, order=3, mode="mirror", output=np.float32)
+    return spline_filter(response, dtype=np.float32)
 
 
 def _along_normal(coef, normals, sp, idx):
@@ -794,6 +796,4 @@ def _build_f(mask, normals, offset, sp, smooth_mm, ridge_shift=0.0) -> np.ndarra
     # is an area density, |n / spacing| per voxel, whatever the orientation and spacing.
     w = np.sqrt(np.sum((n / spa) ** 2, axis=1)) * np.sqrt(2.0 * np.pi) * smooth_mm
     dens = splat_surface(mask.shape, pts, w)
-    return ndimage.gaussian_filter(
-        dens, [smooth_mm / s for s in sp], mode="constant", truncate=_TRUNCATE, output=np.float32
-    )
+    return gaussian_filter(dens, [smooth_mm / s for s in sp], mode="constant", truncate=_TRUNCATE)

@@ -50,6 +50,8 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
+from segsnake.parallel import slabs, spline_filter, thread_map
+
 __all__ = ["Lookup", "bspline_weights"]
 
 _D1 = np.array([1.0, -8.0, 0.0, 8.0, -1.0]) / 12.0  # correlate1d weights, first derivative
@@ -110,7 +112,18 @@ def _deriv(a: np.ndarray, axis: int, h: float, order: int) -> np.ndarray:
 
 
 def _cumint_x(g: np.ndarray, h: float) -> np.ndarray:
-    """4th-order cumulative integral along axis 0 from the first plane (float64, in place on g)."""
+    """4th-order cumulative integral along axis 0 from the first plane (float64), in threads
+    over slabs cut across another axis."""
+    out = np.empty_like(g, dtype=np.float64)
+
+    def slab(sl: tuple[slice, ...]) -> None:
+        out[sl] = _cumint_x_slab(g[sl], h)
+
+    thread_map(slab, slabs(g.shape, 0))
+    return out
+
+
+def _cumint_x_slab(g: np.ndarray, h: float) -> np.ndarray:
     n = g.shape[0]
     out = np.empty_like(g, dtype=np.float64)
     out[0] = 0.0
@@ -152,10 +165,7 @@ class Lookup:
             raise ValueError("lookup values contain NaN or Inf")
         self.shape = tuple(int(s) for s in values.shape)
         self.spacing = _check_spacing(spacing)
-        coef = values.copy()
-        for axis, n in enumerate(self.shape):
-            if n > 1:  # a single sample needs no prefilter (and cannot be mirrored)
-                ndimage.spline_filter1d(coef, order=3, axis=axis, mode="mirror", output=coef)
+        coef = spline_filter(values)  # (an axis of a single sample is left as it is)
         ix = [_mirror_index(np.arange(-_PAD, n + _PAD), n) for n in self.shape]
         self.coef = np.ascontiguousarray(coef[np.ix_(*ix)])
         pshape = self.coef.shape
@@ -188,9 +198,10 @@ class Lookup:
         if f.ndim != 3:
             raise ValueError(f"field must be 3D, got shape {f.shape}")
         if divergence_of_gradient:
-            base = _deriv(f, 0, sp[0], 1)
-            integrand = _deriv(f, 1, sp[1], 2)
-            integrand += _deriv(f, 2, sp[2], 2)
+            base, integrand, f_zz = thread_map(lambda job: _deriv(f, *job),
+                                               [(0, sp[0], 1), (1, sp[1], 2), (2, sp[2], 2)])
+            integrand += f_zz
+            del f_zz
         else:
             base = None
             integrand = f.astype(np.float64)
@@ -245,9 +256,13 @@ class Lookup:
         g = np.empty(len(p))
         grad = np.empty((len(p), 3))
         # In blocks: the 64 coefficients gathered per point then stay in cache through the
-        # contractions (measured: 1.9x faster than one pass over 100k points).
-        for i in range(0, len(p), _BLOCK):
+        # contractions (measured: 1.9x faster than one pass over 100k points); the blocks run
+        # in parallel threads.
+
+        def block(i: int) -> None:
             g[i:i + _BLOCK], grad[i:i + _BLOCK] = self._sample_block(p[i:i + _BLOCK])
+
+        thread_map(block, range(0, len(p), _BLOCK))
         if single:
             return g[0], grad[0]
         return g, grad

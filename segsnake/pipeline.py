@@ -38,6 +38,7 @@ from scipy import ndimage
 from segsnake.energy import AxialTension, FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.optimize import minimize_energy
+from segsnake.parallel import gaussian_filter
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
@@ -430,7 +431,7 @@ def _discard(em, keep: NDArray | None) -> None:
     if keep is None:
         return
     em.mask &= keep
-    em.f *= ndimage.gaussian_filter(keep.astype(np.float32), [em.smooth_mm / x for x in em.spacing])
+    em.f *= gaussian_filter(keep, [em.smooth_mm / x for x in em.spacing])
 
 
 class _Run:
@@ -470,7 +471,8 @@ class _Run:
         t0 = time.perf_counter()
         sigma = max(smooth_mm, 1.5)
         dist = ndimage.distance_transform_edt(~edges, sampling=self.sp).astype(np.float32)
-        f_d = ndimage.gaussian_filter(-dist, [sigma / x for x in self.sp], mode="nearest")
+        f_d = gaussian_filter(np.negative(dist, out=dist), [sigma / x for x in self.sp],
+                              mode="nearest")
         del dist
         lookup = Lookup.from_field(f_d, self.sp)
         del f_d

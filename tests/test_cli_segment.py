@@ -603,3 +603,28 @@ def test_sigterm_leaves_no_partial_output(tmp_path):
     assert proc.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_threads_do_not_change_the_result(ball, done, tmp_path, capsys, monkeypatch):
+    from segsnake import parallel
+
+    ph, image, truth = ball
+    out = tmp_path / "one"
+    try:
+        rc, _, err = segment([image, "--out", out, "--quiet", "--threads", "1", *init_args(ph)],
+                             capsys)
+    finally:
+        parallel.set_threads(None)
+    assert rc == 0, err
+    a = np.asarray(nib.load(out / "mask.nii.gz").dataobj)
+    b = np.asarray(nib.load(done[0] / "mask.nii.gz").dataobj)
+    assert np.array_equal(a, b)
+    assert json.loads((out / "snake.json").read_text())["model"] == \
+        json.loads((done[0] / "snake.json").read_text())["model"]
+
+    monkeypatch.setenv(parallel.ENV, "lots")
+    rc, stdout, err = segment([image, "--out", tmp_path / "bad", "--quiet", *init_args(ph)],
+                              capsys)
+    assert rc == 2 and stdout == ""
+    one_error_line(err, parallel.ENV, "'lots'")
+    assert not (tmp_path / "bad").exists()

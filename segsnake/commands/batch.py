@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from segsnake.commands import positive_int
 from segsnake.errors import BatchError, ConfigError
 
 HELP = "run many segmentations from a YAML file (local process pool or a Dask cluster)"
@@ -22,16 +23,6 @@ OUT/results.jsonl as cases finish; each case's outputs go to OUT/<case name>/.
 Exit codes: 0 all cases ok, 2 invalid batch file, 5 results/outputs not writable,
 6 some cases failed (see results.csv).
 """
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
 
 
 def _positive_float(text: str) -> float:
@@ -48,7 +39,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser = subparsers.add_parser("batch", help=HELP, description=HELP, epilog=EPILOG,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", metavar="RUNS.yaml", help="batch file (defaults, cases, output_dir)")
-    parser.add_argument("--workers", "-j", type=_positive_int, default=None, metavar="N",
+    parser.add_argument("--workers", "-j", type=positive_int, default=None, metavar="N",
                         help="cases running at once on this machine (default: number of CPUs)")
     parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
                         help="send the cases to a running dask.distributed scheduler "

@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from segsnake.commands import positive_int
+
 HELP = "segment one structure in a 3D image with a spline snake"
 
 
@@ -67,6 +69,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print one JSON summary on stdout")
+    parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                        help="threads for the array work (default: $SEGSNAKE_NUM_THREADS, "
+                             "else every CPU this process may use)")
     add_segment_options(parser)
     parser.set_defaults(func=run)
     return parser
@@ -113,7 +118,12 @@ def progress_reporter(quiet: bool):
 
 
 def run(args: argparse.Namespace) -> int:
+    from segsnake.parallel import set_threads, threads
     from segsnake.runner import segment_file
+
+    if args.threads is not None:
+        set_threads(args.threads)
+    threads()  # a bad SEGSNAKE_NUM_THREADS stops here, before any work
 
     config = config_from_args(args)
     progress, bar = progress_reporter(args.quiet or args.json)

@@ -1,0 +1,147 @@
+"""Threads for the heavy array work (lookup sampling, separable filters).
+
+numpy's gathers and contractions and scipy.ndimage's filters release the GIL, so independent
+blocks of one computation run in parallel in threads (measured on 2 cores: 1.6x on lookup
+sampling, 1.9x on six Gaussian passes). Every result is computed block by block exactly as in
+one thread, so the number of threads never changes a result.
+
+The number of threads is, in order: :func:`set_threads`, the environment variable
+``SEGSNAKE_NUM_THREADS``, or the CPUs this process may run on (as ITK does). ``segsnake batch``
+divides the CPUs between its worker processes.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterable, Sequence, TypeVar
+
+import numpy as np
+from scipy import ndimage
+
+from segsnake.errors import ConfigError
+
+__all__ = ["threads", "set_threads", "thread_map", "slabs", "gaussian_filter", "spline_filter",
+           "ENV"]
+
+ENV = "SEGSNAKE_NUM_THREADS"
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+_lock = threading.Lock()
+_requested: int | None = None
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+
+
+def _available_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return os.cpu_count() or 1
+
+
+def threads() -> int:
+    """The number of threads segsnake uses (at least 1)."""
+    if _requested is not None:
+        return _requested
+    value = os.environ.get(ENV, "").strip()
+    if value:
+        try:
+            n = int(value)
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise ConfigError(f"environment variable {ENV} must be a positive integer, "
+                              f"got {value!r}")
+        return n
+    return _available_cpus()
+
+
+def set_threads(n: int | None) -> None:
+    """Use ``n`` threads from now on (``None``: back to the environment / CPU default)."""
+    global _requested
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise ValueError(f"the number of threads must be a positive integer, got {n!r}")
+    _requested = n
+
+
+def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
+    """``[fn(x) for x in items]``, in up to :func:`threads` threads, in order.
+
+    Runs in the calling thread when one thread is configured or there is only one item, and
+    when called from inside a pool thread (nested calls would wait on their own pool).
+    """
+    items = list(items)
+    n = min(threads(), len(items))
+    if n <= 1 or threading.current_thread().name.startswith("segsnake-worker"):
+        return [fn(x) for x in items]
+    return list(_executor(threads()).map(fn, items))
+
+
+def _forget_pool() -> None:
+    # A forked child has the pool object but not its threads.
+    global _pool, _pool_size, _lock
+    _pool, _pool_size, _lock = None, 0, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _executor(size: int) -> ThreadPoolExecutor:
+    global _pool, _pool_size
+    with _lock:
+        if _pool is None or _pool_size != size:
+            if _pool is not None:
+                _pool.shutdown(wait=False)
+            _pool = ThreadPoolExecutor(max_workers=size, thread_name_prefix="segsnake-worker")
+            _pool_size = size
+        return _pool
+
+
+def slabs(shape: Sequence[int], axis: int) -> list[tuple[slice, ...]]:
+    """Index tuples cutting an array of ``shape`` into :func:`threads` slabs, across the longest
+    axis other than ``axis`` (so a 1D pass along ``axis`` runs on each slab independently)."""
+    others = [a for a in range(len(shape)) if a != axis]
+    if not others:
+        return [tuple(slice(None) for _ in shape)]
+    cut = max(others, key=lambda a: shape[a])
+    bounds = np.linspace(0, shape[cut], min(threads(), shape[cut]) + 1).astype(int)
+    return [tuple(slice(lo, hi) if a == cut else slice(None) for a in range(len(shape)))
+            for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
+
+
+def _along_axes(array: np.ndarray, dtype, pass_1d: Callable[[np.ndarray, int, np.ndarray], None]
+                ) -> np.ndarray:
+    out = np.array(array, dtype=dtype, order="C")
+    for axis in range(out.ndim):
+        if out.shape[axis] > 1:
+            thread_map(lambda sl, axis=axis: pass_1d(out[sl], axis, out[sl]),
+                       slabs(out.shape, axis))
+    return out
+
+
+def gaussian_filter(array: np.ndarray, sigma: Sequence[float], *, mode: str = "reflect",
+                    truncate: float = 4.0, dtype=np.float32) -> np.ndarray:
+    """``scipy.ndimage.gaussian_filter`` (per-axis ``sigma`` in voxels), in threads, as ``dtype``.
+
+    Each axis' 1D pass runs on slabs cut across another axis, in place: the same numbers as one
+    ``gaussian_filter`` call on a ``dtype`` copy.
+    """
+    def pass_1d(src: np.ndarray, axis: int, dst: np.ndarray) -> None:
+        ndimage.gaussian_filter1d(src, sigma[axis], axis=axis, mode=mode, truncate=truncate,
+                                  output=dst)
+
+    return _along_axes(array, dtype, pass_1d)
+
+
+def spline_filter(array: np.ndarray, *, dtype=np.float64) -> np.ndarray:
+    """Cubic B-spline coefficients (``scipy.ndimage.spline_filter``, mirror boundary), in
+    threads, as ``dtype``."""
+    def pass_1d(src: np.ndarray, axis: int, dst: np.ndarray) -> None:
+        ndimage.spline_filter1d(src, order=3, axis=axis, mode="mirror", output=dst)
+
+    return _along_axes(array, dtype, pass_1d)

@@ -1,0 +1,96 @@
+"""Threads never change a result: thread_map, the slab filters and the lookup's blocks."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from segsnake import parallel
+from segsnake.errors import ConfigError
+from segsnake.features import gaussian_derivatives
+from segsnake.lookup import Lookup
+
+
+@pytest.fixture
+def two_threads():
+    parallel.set_threads(2)
+    yield
+    parallel.set_threads(None)
+
+
+def test_thread_map_keeps_order_and_uses_the_pool(two_threads):
+    names = parallel.thread_map(lambda i: (i, threading.current_thread().name), range(7))
+    assert [i for i, _ in names] == list(range(7))
+    assert all(n.startswith("segsnake-worker") for _, n in names)
+    # A nested call runs in the pool thread that made it (it would otherwise wait on itself).
+    nested = parallel.thread_map(lambda i: parallel.thread_map(lambda j: i * j, range(3)), [1, 2])
+    assert nested == [[0, 1, 2], [0, 2, 4]]
+
+
+def test_one_thread_runs_in_the_caller():
+    parallel.set_threads(1)
+    try:
+        names = parallel.thread_map(lambda i: threading.current_thread().name, range(3))
+    finally:
+        parallel.set_threads(None)
+    assert set(names) == {threading.current_thread().name}
+
+
+def test_thread_count_from_the_environment(monkeypatch):
+    monkeypatch.setenv(parallel.ENV, "3")
+    assert parallel.threads() == 3
+    for bad in ("0", "-2", "many"):
+        monkeypatch.setenv(parallel.ENV, bad)
+        with pytest.raises(ConfigError, match=parallel.ENV):
+            parallel.threads()
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError):
+            parallel.set_threads(bad)
+
+
+@pytest.mark.parametrize("shape,axis", [((9, 5, 4), 0), ((2, 7, 30), 2), ((1, 1, 5), 2)])
+def test_slabs_tile_the_array_once(two_threads, shape, axis):
+    count = np.zeros(shape, dtype=int)
+    pieces = parallel.slabs(shape, axis)
+    for sl in pieces:
+        count[sl] += 1
+        assert sl[axis] == slice(None)  # never cut along the filtered axis
+    assert np.all(count == 1)
+    assert len(pieces) == min(2, max(n for a, n in enumerate(shape) if a != axis))
+
+
+def test_slab_filters_equal_scipy(two_threads):
+    rng = np.random.default_rng(4)
+    a = rng.standard_normal((23, 17, 11)).astype(np.float32)
+    expected = ndimage.gaussian_filter(a, (1.5, 0.7, 2.0), mode="nearest", output=np.float32)
+    got = parallel.gaussian_filter(a, (1.5, 0.7, 2.0), mode="nearest")
+    assert got.dtype == np.float32 and np.array_equal(got, expected)
+    expected = ndimage.spline_filter(a.astype(np.float64), order=3, mode="mirror")
+    got = parallel.spline_filter(a)
+    assert got.dtype == np.float64 and np.array_equal(got, expected)
+    # An axis of one sample is left alone (a mirror boundary needs two).
+    flat = a[:, :1, :]
+    expected = ndimage.spline_filter1d(flat.astype(np.float64), order=3, axis=0, mode="mirror")
+    expected = ndimage.spline_filter1d(expected, order=3, axis=2, mode="mirror")
+    assert np.array_equal(parallel.spline_filter(flat), expected)
+
+
+def test_lookup_and_derivatives_do_not_depend_on_threads():
+    rng = np.random.default_rng(5)
+    f = ndimage.gaussian_filter(rng.standard_normal((30, 26, 22)), 2.0)
+    pts = rng.uniform(1.0, 20.0, size=(20000, 3))  # three blocks of Lookup.sample
+    results = []
+    for n in (1, 2, 3):
+        parallel.set_threads(n)
+        try:
+            lk = Lookup.from_field(f, (1.0, 0.8, 1.2))
+            d = gaussian_derivatives(f, (1.0, 0.8, 1.2), 1.5, [(2, 0, 0), (1, 1, 0), (0, 0, 1)])
+            results.append((lk.coef, *lk.sample(pts), *d.values()))
+        finally:
+            parallel.set_threads(None)
+    for other in results[1:]:
+        for x, y in zip(results[0], other):
+            assert np.array_equal(x, y)
