@@ -64,7 +64,7 @@ import numpy as np
 from scipy import ndimage
 
 from segsnake.errors import SegmentationError
-from segsnake.parallel import gaussian_filter, spline_filter, thread_map
+from segsnake.parallel import gaussian_filter, spline_filter, thread_map, threads
 
 __all__ = [
     "EdgeMap",
@@ -218,7 +218,8 @@ def _surface_full(
     response = np.empty(n, dtype=np.float32)
     normals = np.empty((n, 3), dtype=np.float32)
     sheet = np.empty(n, dtype=bool)
-    for s in range(0, n, _CHUNK):
+
+    def chunk(s: int) -> None:
         e = min(n, s + _CHUNK)
         hxx, hyy, hzz, hxy, hxz, hyz = (a[s:e].astype(np.float64) for a in flat)
         lam, lam_max, vec = _smallest_eig(hxx, hyy, hzz, hxy, hxz, hyz)
@@ -230,6 +231,8 @@ def _surface_full(
         # curvature across it dominates: lam_min < -|lam_max| and lam_min < 2 lam_mid.
         lam_mid = (hxx + hyy + hzz) - lam - lam_max
         sheet[s:e] = (lam < -np.abs(lam_max)) & (lam < 2.0 * lam_mid)
+
+    thread_map(chunk, range(0, n, _CHUNK))
     return response.reshape(shape), normals.reshape(shape + (3,)), sheet.reshape(shape)
 
 
@@ -307,9 +310,14 @@ def _along_normal(coef, normals, sp, idx):
     nrm = np.sqrt(np.einsum("ij,ij->i", d, d))
     nrm[nrm == 0] = 1.0
     step = (d / nrm[:, None]).T
-    rp = ndimage.map_coordinates(coef, ijk + step, order=3, mode="mirror", prefilter=False)
-    rm = ndimage.map_coordinates(coef, ijk - step, order=3, mode="mirror", prefilter=False)
-    return rp, rm, 1.0 / nrm
+    # Both sides, each in slices of the points, in parallel threads.
+    cuts = np.linspace(0, len(idx), max(1, min(threads(), len(idx) // 4096)) + 1).astype(int)
+    jobs = [(sign, slice(lo, hi)) for sign in (1.0, -1.0) for lo, hi in zip(cuts[:-1], cuts[1:])]
+    parts = thread_map(lambda job: ndimage.map_coordinates(
+        coef, ijk[:, job[1]] + job[0] * step[:, job[1]], order=3, mode="mirror",
+        prefilter=False), jobs)
+    half = len(jobs) // 2
+    return np.concatenate(parts[:half]), np.concatenate(parts[half:]), 1.0 / nrm
 
 
 def non_maximum_suppression(
@@ -528,11 +536,13 @@ def splat_surface(
     i0 = np.minimum(np.floor(p).astype(np.int64), np.maximum(shp - 2, 0))
     fr = p - i0
     strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+    flat, w = [], []
     for corner in range(8):
         off = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
-        w = weights * np.prod(np.where(off, fr, 1.0 - fr), axis=1)
-        flat = (np.minimum(i0 + off, shp - 1) * strides).sum(axis=1)
-        out += np.bincount(flat, weights=w, minlength=size)
+        w.append(weights * np.prod(np.where(off, fr, 1.0 - fr), axis=1))
+        flat.append((np.minimum(i0 + off, shp - 1) * strides).sum(axis=1))
+    # One bincount over the eight corners: a single pass over the output grid.
+    out = np.bincount(np.concatenate(flat), weights=np.concatenate(w), minlength=size)
     return out.reshape(shape).astype(np.float32)
 
 

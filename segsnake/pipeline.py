@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from segsnake.distance import distance_to
 from segsnake.energy import AxialTension, FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.optimize import minimize_energy
@@ -57,8 +58,8 @@ INNER_FACE_DEPTH_MM = 10.0
 MIN_EDGE_SUPPORT = 0.15
 #: A-priori quadrature: nodes this many feature widths apart (see :func:`quadrature_order`),
 #: or CAPTURE_NODE_SPACING in the capture stage (see :meth:`_Run.capture`), ...
-NODE_SPACING = 2.0
-CAPTURE_NODE_SPACING = 0.75
+NODE_SPACING = 4.0
+CAPTURE_NODE_SPACING = 1.5
 #: ... at most this many per knot interval ...
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
@@ -389,7 +390,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s) -> Segmen
         # Every step that survives non-maximum suppression, thresholded among the candidates
         # of the band only: the inner face can be far weaker than the sheet's outer face.
         inside = rasterize(model, shape, sp)
-        depth = ndimage.distance_transform_edt(inside, sampling=sp)
+        depth = distance_to(~inside, sp)
         band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale))
         del depth
         face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None, region=band)
@@ -470,7 +471,7 @@ class _Run:
             raise SegmentationError("no edges found outside the initial surface")
         t0 = time.perf_counter()
         sigma = max(smooth_mm, 1.5)
-        dist = ndimage.distance_transform_edt(~edges, sampling=self.sp).astype(np.float32)
+        dist = distance_to(edges, self.sp)
         f_d = gaussian_filter(np.negative(dist, out=dist), [sigma / x for x in self.sp],
                               mode="nearest")
         del dist
