@@ -42,7 +42,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
                     metric: NDArray | None = None,
                     admissible: Callable[[NDArray], bool] | None = None,
                     bounds_mm: NDArray | None = None,
-                    callback: Callable[[int, float], None] | None = None,
+                    callback: Callable[[int, float, NDArray], bool | None] | None = None,
                     min_volume_fraction: float = 0.02, window: int = 5) -> OptimizeResult:
     """Minimize ``energy`` starting from ``model`` with step-limited L-BFGS.
 
@@ -79,8 +79,9 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     bounds_mm : ndarray (3,), optional
         Extent of the volume in mm; a control point farther than one extent outside it means
         the snake escaped (SegmentationError).
-    callback : callable(iteration, energy), optional
-        Progress report after each iteration.
+    callback : callable(iteration, energy, params), optional
+        Called after each iteration; when it returns True the minimization stops there
+        (message "stopped by callback", not converged).
     min_volume_fraction : float
         A volume below this fraction of the initial one counts as a collapse.
     window : int
@@ -154,8 +155,9 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         step = displacement(s)
         x, f, g = x_new, f_new, g_new
         history.append(f)
-        if callback is not None:
-            callback(it, f)
+        if callback is not None and callback(it, f, x):
+            message = "stopped by callback"
+            break
         # The decrease over the last few iterations, not one: a single small step (after an
         # overshoot, or one shortened to stay admissible) says nothing about convergence.
         if it >= window and history[-window - 1] - f <= window * tol * max(abs(f), 1e-12):

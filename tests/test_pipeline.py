@@ -140,11 +140,23 @@ def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
     assert pipeline.quadrature_order(1.5 * max(pipeline.longest_intervals(model)), 4.0) == 4
     out, info = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
                                     feature_mm=4.0)
-    checks = info["quadrature_checks"]
+    checks = [c for c in info["quadrature_checks"] if c["when"] == "converged"]
     assert [c["order"] for c in checks] == [[4, 4], [8, 8]]
     assert checks[0]["relative_error"] > 1e-4 >= checks[1]["relative_error"]
     e8, e16 = (FluxTerm(out, sampler, order=o).value_and_grad(out.params)[0] for o in (8, 16))
     assert abs(e8 - e16) <= 1e-4 * abs(e16)
+
+    # Checked while running (here after every iteration, with a tight tolerance), the
+    # first round stops at its first iteration and the stage goes on at order 8.
+    monkeypatch.setattr(pipeline, "QUADRATURE_CHECK_EVERY", 1)
+    monkeypatch.setattr(pipeline, "QUADRATURE_RTOL_RUNNING", 1e-5)
+    out, info = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
+                                    feature_mm=4.0)
+    first = info["quadrature_checks"][0]
+    assert first["when"] == "running" and first["order"] == [4, 4]
+    assert first["relative_error"] > 1e-5
+    assert {tuple(c["order"]) for c in info["quadrature_checks"][1:]} == {(8, 8)}
+    assert info["quadrature_resolved"] and info["quadrature_order"] == (8, 8)
 
 
 def test_seed_point_is_a_world_position_with_world(monkeypatch):
