@@ -14,8 +14,11 @@ Goals (issue 4, thesis 003 for the paper's figures):
 
 Every case runs in a fresh child process (imports, phantom and caches are the child's own),
 ``--repeats`` times (default 3); the median wall time of ``segment_volume`` is reported with its
-``timings`` breakdown (median over repeats) and the stages of the last repeat. One more child per
-case runs it under cProfile (slower by the profiler's overhead) for the top functions.
+``timings`` breakdown (median over repeats) and the stages of the last repeat. The modules
+``segment_volume`` imports on first use are imported before the clock starts; one more run per
+case is the whole ``segsnake segment`` command on the phantom written as NIfTI, timed from process
+start to exit (imports, loading and the four outputs included). One more child per case runs
+``segment_volume`` under cProfile (slower by the profiler's overhead) for the top functions.
 
 Usage::
 
@@ -100,6 +103,7 @@ def child_case(name: str, profile_top: int = 0) -> dict:
     from segsnake.phantoms import make_phantom
     from segsnake.pipeline import segment_volume
 
+    _import_pipeline_modules()
     case = CASES[name]
     t0 = time.perf_counter()
     ph = make_phantom(case["kind"], seed=0, **case["options"])
@@ -142,6 +146,59 @@ def child_case(name: str, profile_top: int = 0) -> dict:
     if prof is not None:
         out["profile"] = _profile_rows(prof, profile_top)
     return out
+
+
+def _import_pipeline_modules() -> None:
+    """Import what ``segment_volume`` imports on first use (VTK, ITK, scikit-image: about 0.5 s).
+
+    Those imports are paid once per process, by every ``segsnake`` command; the CLI rows of the
+    report (:func:`child_cli`) include them, the ``segment_volume`` rows do not.
+    """
+    import pyvista  # noqa: F401
+    import SimpleITK  # noqa: F401
+    import skimage.filters  # noqa: F401
+
+    import segsnake.distance  # noqa: F401
+    import segsnake.features  # noqa: F401
+    import segsnake.rasterize  # noqa: F401
+
+
+def cli_args(options: dict) -> list[str]:
+    """``segsnake segment`` flags for a case's options."""
+    args = []
+    for key, value in options.items():
+        flag = "--" + key.replace("_", "-")
+        if isinstance(value, (list, tuple)):
+            args += [flag, *map(str, value)]
+        else:
+            args += [flag, str(value)]
+    return args
+
+
+def child_cli(name: str) -> dict:
+    """``segsnake segment`` end to end on the case's phantom written as NIfTI: the wall time of
+    the whole process (interpreter start, imports, loading, segmentation, the four outputs)."""
+    import tempfile
+
+    from segsnake.commands.phantom import write_phantom
+    from segsnake.phantoms import make_phantom
+
+    case = CASES[name]
+    ph = make_phantom(case["kind"], seed=0, **case["options"])
+    exe = os.path.join(os.path.dirname(sys.executable), "segsnake")
+    with tempfile.TemporaryDirectory() as tmp:
+        write_phantom(ph, tmp)
+        cmd = [exe, "segment", os.path.join(tmp, "image.nii.gz"), "--out",
+               os.path.join(tmp, "out"), "--truth", os.path.join(tmp, "truth.nii.gz"), "--json",
+               *cli_args(case_config(name, ph.init))]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        return {"case": name, "error": (proc.stderr.strip().splitlines() or ["?"])[-1]}
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {"case": name, "wall_s": wall, "timings": summary["timings"],
+            "dice": summary.get("dice"), "jaccard": summary.get("jaccard")}
 
 
 def _profile_rows(prof, top: int) -> list[dict]:
@@ -325,6 +382,24 @@ def markdown(info: dict) -> str:
             f"{s['iterations']} | {s['ok']}/{s['repeats']} "
             f"({', '.join(_fmt(w, 1) for w in s['walls_s'])}) |")
     lines.append("")
+    if info.get("cli"):
+        lines.append("`segsnake segment IMAGE --out DIR --truth MASK --json` end to end (one run per "
+                     "case; the process's wall time from start to exit, and its summary's "
+                     "timings: loading, `segment_volume`, writing the four outputs):")
+        lines.append("")
+        lines.append("| case | process wall (s) | inside segment_file (s) | load | segment_volume | "
+                     "write | Dice | Jaccard |")
+        lines.append("|---|---|---|---|---|---|---|---|")
+        for c in info["cli"]:
+            if "wall_s" not in c:
+                lines.append(f"| {c.get('case', '?')} | failed: {c.get('error')} | | | | | | |")
+                continue
+            t = c["timings"]
+            inner = sum(v for k, v in t.items() if k not in ("load_s", "write_s", "total_s"))
+            lines.append(f"| {c['case']} | **{c['wall_s']:.2f}** | {t['total_s']:.2f} | "
+                         f"{t['load_s']:.2f} | {inner:.2f} | {t['write_s']:.2f} | "
+                         f"{_fmt(c['dice'])} | {_fmt(c['jaccard'])} |")
+        lines.append("")
     lines.append("Stages (last repeat): iterations / energy evaluations, quadrature order, seconds, "
                  "ms per evaluation:")
     lines.append("")
@@ -364,12 +439,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile-top", type=int, default=12,
                     help="functions listed per cProfile run (0: no profiling)")
     ap.add_argument("--no-energy", action="store_true", help="skip the energy benchmark")
+    ap.add_argument("--no-cli", action="store_true",
+                    help="skip the end-to-end `segsnake segment` runs")
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers here")
     # Internal: one measurement in this process, JSON on stdout.
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--orders", default="", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
 
+    if args.child and args.child.startswith("cli:"):
+        print(json.dumps(child_cli(args.child[4:])))
+        return 0
     if args.child == "energy":
         orders = [tuple(int(x) for x in o.split("x")) for o in args.orders.split(",") if o]
         print(json.dumps(child_energy(orders, args.calls)))
@@ -393,6 +473,12 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr, flush=True)
         cases.append(summarize(name, runs))
     info["cases"] = cases
+    if not args.no_cli:
+        info["cli"] = []
+        for name in args.cases:
+            info["cli"].append(_run_child(["--child", f"cli:{name}"]))
+            print(f"[bench_snake] {name} CLI: {_fmt(info['cli'][-1].get('wall_s'), 2)} s "
+                  f"{info['cli'][-1].get('error', '')}", file=sys.stderr, flush=True)
     if args.profile_top > 0:
         info["profiles"] = {}
         for name in args.cases:
