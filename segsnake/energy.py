@@ -62,10 +62,10 @@ def flux_integrand_grads(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weig
 class FluxTerm:
     """``weight * integral_V h dV`` through a lookup ``G`` (see the module docstring).
 
-    Known limitation: for an open cylinder only the lateral surface is integrated. That is the
-    closed-surface flux when the end caps are perpendicular to x, i.e. the cylinder's axis is
-    perpendicular to x; :func:`segsnake.pipeline.flux_frame` turns the frame so that it is
-    for a cylinder along any array axis. For an oblique axis the caps' ``integral G n_x`` is
+    For an open cylinder only the lateral surface is integrated. That is the closed-surface flux
+    when the end caps are perpendicular to x, i.e. the cylinder's axis is perpendicular to x;
+    :func:`segsnake.frames.flux_frame` picks a frame where it is (a permutation of the array
+    axes, or a rotated, resampled grid). In any other frame the caps' ``integral G n_x`` is
     missing. (Closing the caps exactly, commit "FluxTerm closes open cylinders...", makes the
     capture stop about 4 mm inside the Table 7.2 wall, beyond the refinement's reach.)
 

@@ -38,12 +38,13 @@ from scipy import ndimage
 from segsnake.distance import distance_to
 from segsnake.energy import AxialTension, FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
+from segsnake.frames import flux_frame
 from segsnake.optimize import minimize_energy
 from segsnake.parallel import gaussian_filter
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
-__all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init", "flux_frame"]
+__all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
 
 Progress = Callable[[str, float], None]
 
@@ -282,63 +283,47 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         # The seed point is a position like the others: world mm with --world.
         seed_idx = index_from_world(np.asarray(config.seed_point, dtype=np.float64)[None])[0]
         config = config.replace(seed_point=[float(x) for x in seed_idx])
-    perm = flux_frame(model)
-    if perm is None:
+    frame = flux_frame(model, sp, image.shape)
+    if frame is None:
         return _segment(image, sp, config, model, progress, extra_energy, init_s)
-    # Work in the frame whose first axis (the lookup's integration axis) is the one most
-    # perpendicular to the cylinder: there the open ends' missing caps carry no flux. A cyclic
-    # permutation of the axes is a rotation, so the snake's orientation is unchanged.
-    inv = np.argsort(perm)
-    seed = None if config.seed_point is None else [config.seed_point[k] for k in perm]
+    # Work in the frame whose first axis (the lookups' integration axis) runs across the
+    # cylinder: there its open ends' missing caps carry no flux (segsnake.frames).
+    from segsnake.rasterize import rasterize
+
+    t0 = time.perf_counter()
+    framed = frame.image_in(image, sp)
+    frame_s = time.perf_counter() - t0
+    seed = None if config.seed_point is None else frame.index_in(config.seed_point, sp)
     extra = None if extra_energy is None else \
-        (lambda m: _InFrame(extra_energy(_permuted(m, inv)), perm))
-    res = _segment(np.ascontiguousarray(np.transpose(image, perm)), tuple(sp[k] for k in perm),
-                   config.replace(seed_point=seed), _permuted(model, perm), progress, extra,
-                   init_s)
-    res.model = _permuted(res.model, inv)
+        (lambda m: frame.energy_in(extra_energy(frame.model_out(m)), m.is_vector))
+    # The defaults that depend on the voxel size are the original image's.
+    scale = config.scale if config.scale is not None else _default_scale(sp)
+    res = _segment(framed, frame.spacing, config.replace(seed_point=seed, scale=scale),
+                   frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp))
+    del framed
+    res.model = frame.model_out(res.model)
     res.init_model = model
-    res.mask = np.ascontiguousarray(np.transpose(res.mask, inv))
-    res.settings["integration_axis"] = int(perm[0])
+    res.timings["frame_s"] = frame_s
+    if frame.perm is not None:
+        res.mask = np.ascontiguousarray(np.transpose(res.mask, np.argsort(frame.perm)))
+        res.settings["integration_axis"] = int(frame.perm[0])
+    else:
+        t0 = time.perf_counter()
+        res.mask = rasterize(res.model, image.shape, sp)
+        res.timings["mask_s"] += time.perf_counter() - t0
+    res.settings["integration_direction"] = frame.integration_direction
     return res
 
 
-def flux_frame(model: SplineSurface) -> tuple[int, int, int] | None:
-    """Axis order that puts the lookup's integration axis across a cylinder (None: keep x).
-
-    The flux of an open cylinder is integrated over its lateral surface only, which is the
-    closed-surface flux when the (planar) end caps carry no ``G n_x``: when the cylinder's axis
-    is perpendicular to the integration axis. So the integration runs along the array axis with
-    the smallest component of the cylinder's axis (x on a tie): exact for a cylinder along any
-    array axis. A cyclic order is returned (a rotation, orientation-preserving).
-    """
-    if model.kind != "cylinder":
-        return None
-    _, axis = _center_and_axis(model)
-    a = np.abs(axis) / max(float(np.linalg.norm(axis)), 1e-300)
-    k = int(np.argmin(a))
-    if a[k] >= a[0] - 1e-9:
-        return None
-    return (k, (k + 1) % 3, (k + 2) % 3)
+def _default_scale(spacing: Sequence[float]) -> float:
+    """The detector scale without ``--scale``: 1.5 voxels of the largest size, at least 1 mm."""
+    return max(1.0, 1.5 * max(spacing))
 
 
-def _permuted(model: SplineSurface, perm) -> SplineSurface:
-    """The same snake with its coordinates reordered (``new[:, j] = old[:, perm[j]]``)."""
-    return model.with_params(model.params[:, list(perm)])
-
-
-class _InFrame:
-    """An energy of the original frame, evaluated on a snake in the permuted frame."""
-
-    def __init__(self, energy, perm) -> None:
-        self.energy, self.perm, self.inv = energy, list(perm), list(np.argsort(perm))
-
-    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
-        value, grad = self.energy.value_and_grad(params[:, self.inv])
-        return value, grad[:, self.perm]
-
-
-def _segment(image, sp, config, model, progress, extra_energy, init_s) -> SegmentResult:
-    """:func:`segment_volume` from the initial snake on, in the frame of ``image``."""
+def _segment(image, sp, config, model, progress, extra_energy, init_s,
+             smooth_mm: float | None = None) -> SegmentResult:
+    """:func:`segment_volume` from the initial snake on, in the frame of ``image``
+    (``smooth_mm``: the edge map's smoothing, default the largest voxel size)."""
     from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
@@ -349,13 +334,13 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s) -> Segmen
     run.timings["init_s"] = init_s
 
     t0 = time.perf_counter()
-    scale = config.scale if config.scale is not None else max(1.0, 1.5 * max(sp))
+    scale = config.scale if config.scale is not None else _default_scale(sp)
     seed = None if config.seed_point is None else np.asarray(config.seed_point, dtype=float)
     sheet = config.feature == "surface"
     # Thin dark sheets (the CSF around a brain in T1) are thin bright sheets of -image.
     dark_sheet = sheet and config.polarity == "dark"
     em = edge_map(-image if dark_sheet else image, sp, mode=config.feature, scale_mm=scale,
-                  threshold=config.threshold, seed=seed)
+                  threshold=config.threshold, seed=seed, smooth_mm=smooth_mm)
     # The initial surface lies inside the object (that is the contract of an initialization):
     # edges it encloses are internal structures (ventricles, vessels), never the boundary.
     inside_init = rasterize(model, shape, sp)
@@ -398,7 +383,8 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s) -> Segmen
         depth = distance_to(~inside, sp)
         band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale))
         del depth
-        face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None, region=band)
+        face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None, region=band,
+                        smooth_mm=smooth_mm)
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         radial = _radial_field(shape, sp, *_center_and_axis(model))
         band &= -pol * _dot(face.normals, radial) >= 0.5  # steps that face the sheet
