@@ -58,9 +58,12 @@ INNER_FACE_DEPTH_MM = 10.0
 #: Below this mean edge strength under the final surface the segmentation is a failure.
 MIN_EDGE_SUPPORT = 0.15
 #: A-priori quadrature: nodes this many feature widths apart (see :func:`quadrature_order`),
-#: or CAPTURE_NODE_SPACING in the capture stage (see :meth:`_Run.capture`), ...
+#: or CAPTURE_NODE_SPACING in the capture stage (see :meth:`_Run.capture`; the inner face's
+#: capture starts a few mm from its edges and takes INNER_CAPTURE_NODE_SPACING: measured on the
+#: T1 brain, 1.9 s -> 0.8 s, same Dice), ...
 NODE_SPACING = 4.0
 CAPTURE_NODE_SPACING = 0.75
+INNER_CAPTURE_NODE_SPACING = 2.0
 #: ... at most this many per knot interval ...
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
@@ -391,7 +394,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         low, high = auto_levels(face.response[face.mask & band])
         _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
         run.timings["edge_map_s"] += time.perf_counter() - t0
-        model = run.capture(model, face.mask, face.smooth_mm)
+        model = run.capture(model, face.mask, face.smooth_mm, INNER_CAPTURE_NODE_SPACING)
         model = run.refine(model, face, -pol * face.normals, min(face.smooth_mm, scale))
         support = edge_support(model, face.f, sp)
         polarity = f"inner face of a {config.polarity} sheet"
@@ -444,7 +447,8 @@ class _Run:
         self.history.append({"stage": name, **res})
         return model
 
-    def capture(self, model, edges: NDArray, smooth_mm: float):
+    def capture(self, model, edges: NDArray, smooth_mm: float,
+                node_spacing: float = CAPTURE_NODE_SPACING):
         """The flux of ``grad(-d)``, d the distance to the edges (smoothed to be differentiable).
 
         Inside an object, ``grad(-d)`` points to the nearest edge, so the flux pulls the surface
@@ -475,7 +479,7 @@ class _Run:
         # minimum that the finer rounds do not leave (measured on the PD brain: -28311 against
         # -51907, Dice 0.53).
         return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
-                           2 * sigma, tol=1e-4, node_spacing=CAPTURE_NODE_SPACING)
+                           2 * sigma, tol=1e-4, node_spacing=node_spacing)
 
     def refine(self, model, em, out: NDArray, feature_mm: float):
         """The region integral of n_out . grad f, n_out the detected normal oriented outward.
