@@ -149,6 +149,21 @@ def volume_difference(
     return diff, diff / vb
 
 
+def _cropped(a: NDArray[np.bool_], b: NDArray[np.bool_]) -> tuple[NDArray, NDArray]:
+    """Both masks cut to the bounding box of their union plus one voxel (inside the array).
+
+    Every distance measured here is from a voxel of one mask to one of the other (or their
+    surfaces), all inside that box: the distance transforms give the same numbers on the box,
+    and a mask voxel on the box's border is on the array's border too (the surface rule holds).
+    """
+    union = a | b
+    sl = []
+    for d in range(a.ndim):
+        hit = np.flatnonzero(np.any(union, axis=tuple(o for o in range(a.ndim) if o != d)))
+        sl.append(slice(max(int(hit[0]) - 1, 0), min(int(hit[-1]) + 2, a.shape[d])))
+    return a[tuple(sl)], b[tuple(sl)]
+
+
 def _surface(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
     # border_value=0: a voxel on the array border has a background neighbour outside the array.
     return mask & ~ndimage.binary_erosion(mask, border_value=0)
@@ -180,6 +195,7 @@ def surface_distances(
     sp = _spacing(spacing, a.ndim)
     if not a.any() or not b.any():
         raise ValueError("surface distances need two non-empty masks")
+    a, b = _cropped(a, b)
     sa, sb = _surface(a), _surface(b)
     # EDT of the complement gives, at every voxel, the distance to the nearest surface voxel.
     dist_to_b = ndimage.distance_transform_edt(~sb, sampling=sp)
@@ -258,6 +274,7 @@ def hausdorff(pred: ArrayLike, truth: ArrayLike, spacing: Sequence[float] | None
     if not na or not nb:
         return math.inf
     sp = _spacing(spacing, a.ndim)
+    a, b = _cropped(a, b)
     # Points of A inside B are at distance 0; the EDT of ~B measures the rest.
     d_ab = ndimage.distance_transform_edt(~b, sampling=sp)[a].max()
     d_ba = ndimage.distance_transform_edt(~a, sampling=sp)[b].max()

@@ -415,10 +415,9 @@ def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, mo
     Slices pass through the mask's centroid and are drawn with the physical aspect ratio
     (anisotropic voxels are not stretched); the final contour is red, the initial one dashed.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # The object-oriented API without pyplot: nothing global (a notebook keeps its backend).
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the "3d" projection
 
     from segsnake.rasterize import rasterize
 
@@ -431,7 +430,7 @@ def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, mo
     # Grey levels from the three slices shown (a percentile of the whole volume costs 0.2 s).
     shown = [np.take(image, int(centre[axis]), axis=axis).ravel() for axis in range(3)]
     lo, hi = np.percentile(np.concatenate(shown), [1, 99.5])
-    fig = plt.figure(figsize=(13, 3.6), dpi=90)
+    fig = Figure(figsize=(13, 3.6), dpi=90)
     names = ("i (x)", "j (y)", "k (z)")
     for panel, axis in enumerate((2, 1, 0)):
         ax = fig.add_subplot(1, 4, panel + 1)
@@ -463,4 +462,3 @@ def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, mo
     ax3.tick_params(labelsize=6)
     fig.tight_layout()
     fig.savefig(path, format="png")
-    plt.close(fig)

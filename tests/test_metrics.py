@@ -205,3 +205,24 @@ def test_cli_evaluate_errors(tmp_path, mask_files, capsys):
     assert main(["evaluate", str(empty), str(t), "--json"]) == 0
     rec = json.loads(capsys.readouterr().out)
     assert rec["dice"] == 0.0 and rec["hausdorff95_mm"] is None and rec["assd_mm"] is None
+
+
+@pytest.mark.parametrize("corner", [False, True])
+def test_distances_do_not_depend_on_the_empty_margin(corner):
+    # The distance metrics work on the union's bounding box: padding both masks with background
+    # (or moving them against the array border) must not change a single number.
+    a, b = _random_shape(5, shape=(14, 12, 10)), _random_shape(6, shape=(14, 12, 10))
+    sp = (0.9, 1.1, 2.0)
+    pad = ((0, 20), (0, 17), (0, 9)) if corner else ((11, 20), (7, 17), (5, 9))
+    big_a, big_b = np.pad(a, pad), np.pad(b, pad)
+    got = M.evaluate_masks(big_a, big_b, sp)
+    # Reference on the whole array: EDT of the complement of each surface.
+    sa = big_a & ~ndimage.binary_erosion(big_a, border_value=0)
+    sb = big_b & ~ndimage.binary_erosion(big_b, border_value=0)
+    d = np.concatenate([ndimage.distance_transform_edt(~sb, sampling=sp)[sa],
+                        ndimage.distance_transform_edt(~sa, sampling=sp)[sb]])
+    assert got["assd_mm"] == pytest.approx(d.mean(), rel=1e-12)
+    assert got["hausdorff95_mm"] == pytest.approx(np.percentile(d, 95), rel=1e-12)
+    hd = max(ndimage.distance_transform_edt(~big_b, sampling=sp)[big_a].max(),
+             ndimage.distance_transform_edt(~big_a, sampling=sp)[big_b].max())
+    assert got["hausdorff_mm"] == pytest.approx(hd, rel=1e-12)
