@@ -81,7 +81,7 @@ def test_slab_filters_equal_scipy(two_threads):
 def test_lookup_and_derivatives_do_not_depend_on_threads():
     rng = np.random.default_rng(5)
     f = ndimage.gaussian_filter(rng.standard_normal((30, 26, 22)), 2.0)
-    pts = rng.uniform(1.0, 20.0, size=(20000, 3))  # three blocks of Lookup.sample
+    pts = rng.uniform(1.0, 20.0, size=(20000, 3))  # five blocks of Lookup.sample
     results = []
     for n in (1, 2, 3):
         parallel.set_threads(n)
