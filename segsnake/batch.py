@@ -778,7 +778,7 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
                on_record: Callable[[dict[str, Any]], None]) -> None:
     """One fresh process per case, at most ``workers`` at a time, sharing the CPUs."""
     ctx = _mp_context(runner)
-    threads = max(1, parallel_threads() // workers)
+    threads = max(1, parallel_threads() // max(1, min(workers, len(jobs))))
     pending = deque(jobs)
     running: list[_Running] = []
     sys_path = list(sys.path)
@@ -943,7 +943,8 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
     spec : BatchSpec or path
         A validated spec (:func:`load_batch`) or the YAML file to validate.
     workers : int, optional
-        Cases running at once in the local pool (default: CPU count, at most the number of cases).
+        Cases running at once in the local pool (default: the CPUs this process may use, or
+        SEGSNAKE_NUM_THREADS, at most the number of cases); they share those CPUs' threads.
     scheduler : str, optional
         Address of a running ``dask.distributed`` scheduler; replaces the local pool.
     resume : bool
@@ -1013,7 +1014,7 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
         todo = [c for c in spec.cases if c.name not in done]
         # Re-run cases may have complete outputs from a run killed before it recorded them.
         jobs = [c.to_job(out, overwrite=overwrite or resume) for c in todo]
-        n_workers = workers or max(1, min(len(jobs), os.cpu_count() or 1))
+        n_workers = workers or max(1, min(len(jobs), parallel_threads()))
         failed: list[str] = []
         counts = {"ok": 0}
         bar = ProgressBar(len(spec.cases), label="cases", initial=len(done), quiet=quiet,

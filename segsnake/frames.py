@@ -10,10 +10,13 @@ segmented in a frame where it is:
   putting first the array axis most perpendicular to the cylinder, when the caps then tilt by
   less than :data:`OBLIQUE_TOL` (as a sine) from that axis;
 - otherwise a rotated grid with axes ``(e1, e2, a)``, ``a`` the cylinder's axis: the image is
-  resampled (trilinear, isotropic at the smallest voxel size) into the rotated box that holds the
-  whole volume, and the snake is mapped back afterwards (the spline models are affine invariant).
-  Without it an oblique tube feels its caps' missing flux as a force on its ends (measured
-  before, std 50: a tube along (1, 1, 1) Jaccard 0.90, a short one 0.12).
+  resampled (trilinear, isotropic at the smallest voxel size) into a rotated box that holds the
+  volume's whole extent along the tube and :data:`REACH` initial radii (plus :data:`MARGIN_MM`)
+  around its axis, and the snake is mapped back afterwards (the spline models are affine
+  invariant). Without it an oblique tube feels its caps' missing flux as a force on its ends
+  (measured before, std 50: a tube along (1, 1, 1) Jaccard 0.90, a short one 0.12). A rotated
+  grid of more than :data:`MAX_VOXEL_RATIO` times the image's voxels falls back to the permuted
+  frame (a thin tube across a large, anisotropic CT would otherwise cost tens of GB).
 
 Positions are in mm of "scaled index space" (voxel ``(i, j, k)`` at ``(i sx, j sy, k sz)``) in
 both frames; ``x_orig = M x_frame + t``.
@@ -36,6 +39,15 @@ __all__ = ["Frame", "flux_frame", "OBLIQUE_TOL"]
 #: Largest sine of the angle between a cylinder's caps and the integration axis that a
 #: permuted frame may leave (about 6 degrees); beyond it the image is resampled.
 OBLIQUE_TOL = 0.1
+#: The rotated grid reaches this many initial radii, plus MARGIN_MM, around the initial axis
+#: (an initial tube lies inside the structure: the phantoms start at half the radius; this
+#: leaves room for a quarter).
+REACH = 4.0
+MARGIN_MM = 15.0
+#: Largest rotated grid, in voxels of the image.
+MAX_VOXEL_RATIO = 2.0
+#: Frame voxels resampled per piece (float64 indices: about 50 bytes per voxel at once).
+_PIECE = 1 << 20
 
 
 @dataclass
@@ -90,16 +102,22 @@ class Frame:
             return np.ascontiguousarray(np.transpose(image, self.perm))
         out = np.empty(self.shape, dtype=np.float32)
         sp = np.asarray(spacing, dtype=np.float64)
-        grids = [np.arange(n) * s for n, s in zip(self.shape, self.spacing)]
+        # Original voxel index = (M x + t) / sp, x = spacing * (i, j, k): one column of the
+        # affine per frame axis, summed by broadcasting over a piece of frame rows.
+        cols = [self.M[:, d] * self.spacing[d] / sp for d in range(3)]
+        j = np.arange(self.shape[1])[:, None, None] * cols[1]
+        k = np.arange(self.shape[2])[None, :, None] * cols[2]
+        plane = j + k + self.t / sp  # (ny, nz, 3)
 
-        def slab(rows: slice) -> None:
-            x = np.stack(np.meshgrid(grids[0][rows], grids[1], grids[2], indexing="ij"), axis=-1)
-            idx = (x @ self.M.T + self.t) / sp  # original voxel indices
-            out[rows] = ndimage.map_coordinates(image, np.moveaxis(idx, -1, 0), order=1,
-                                                mode="nearest", output=np.float32)
+        def piece(rows: slice) -> None:
+            i = np.arange(rows.start, rows.stop)[:, None, None, None] * cols[0]
+            idx = np.moveaxis(i + plane[None], -1, 0)
+            out[rows] = ndimage.map_coordinates(image, idx, order=1, mode="nearest",
+                                                output=np.float32)
 
-        bounds = np.linspace(0, self.shape[0], min(self.shape[0], 8) + 1).astype(int)
-        thread_map(slab, [slice(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo])
+        per = max(1, _PIECE // max(self.shape[1] * self.shape[2], 1))
+        thread_map(piece, [slice(lo, min(lo + per, self.shape[0]))
+                           for lo in range(0, self.shape[0], per)])
         return out
 
 
@@ -124,26 +142,41 @@ def flux_frame(model: SplineSurface, spacing: Sequence[float],
     """
     if model.kind != "cylinder":
         return None
-    r0, r1 = model.end_rings(4 * model.m1)
-    axis = r1.mean(axis=0) - r0.mean(axis=0)
+    c0, axis, radius = model.axis_and_radius()
     a = axis / max(float(np.linalg.norm(axis)), 1e-300)
     sp = np.asarray(spacing, dtype=np.float64)
     k = int(np.argmin(np.abs(a)))
-    if abs(a[k]) <= OBLIQUE_TOL:
-        if abs(a[k]) >= abs(a[0]) - 1e-9:
-            return None  # x is (as good as) the best axis already
-        perm = (k, (k + 1) % 3, (k + 2) % 3)  # cyclic: a rotation
-        M = np.zeros((3, 3))
-        M[list(perm), [0, 1, 2]] = 1.0
-        return Frame(M, np.zeros(3), tuple(int(shape[p]) for p in perm),
-                     tuple(float(sp[p]) for p in perm), perm)
+    rotated = None
+    if abs(a[k]) > OBLIQUE_TOL:
+        rotated = _rotated(a, k, c0 + axis / 2, radius, sp, shape)
+    if rotated is not None:
+        return rotated
+    if abs(a[k]) >= abs(a[0]) - 1e-9:
+        return None  # x is (as good as) the best axis already
+    perm = (k, (k + 1) % 3, (k + 2) % 3)  # cyclic: a rotation
+    M = np.zeros((3, 3))
+    M[list(perm), [0, 1, 2]] = 1.0
+    return Frame(M, np.zeros(3), tuple(int(shape[p]) for p in perm),
+                 tuple(float(sp[p]) for p in perm), perm)
+
+
+def _rotated(a: NDArray, k: int, centre: NDArray, radius: float, sp: NDArray,
+             shape: Sequence[int]) -> Frame | None:
+    """The rotated frame of a cylinder along ``a`` (None when its grid would be too large)."""
     e1 = np.eye(3)[k] - a[k] * a  # the array axis most across the cylinder, made perpendicular
     e1 /= np.linalg.norm(e1)
     M = np.stack([e1, np.cross(a, e1), a], axis=1)  # det +1
     corners = np.array([[i, j, kk] for i in (0, 1) for j in (0, 1) for kk in (0, 1)],
                        dtype=np.float64) * ((np.asarray(shape) - 1) * sp)
-    q = corners @ M  # the corners in frame axes
+    q = corners @ M  # the volume's corners in frame axes
     lo, hi = q.min(axis=0), q.max(axis=0)
+    # Across the tube, only its reach around the initial axis.
+    reach = REACH * radius + MARGIN_MM
+    qc = centre @ M
+    lo[:2] = np.maximum(lo[:2], qc[:2] - reach)
+    hi[:2] = np.minimum(hi[:2], qc[:2] + reach)
     s = float(sp.min())
     frame_shape = tuple(int(n) for n in np.ceil((hi - lo) / s - 1e-9).astype(int) + 1)
+    if np.prod(frame_shape, dtype=np.float64) > MAX_VOXEL_RATIO * np.prod(shape, dtype=np.float64):
+        return None
     return Frame(M, M @ lo, frame_shape, (s, s, s))

@@ -95,8 +95,8 @@ def _executor(size: int) -> ThreadPoolExecutor:
     global _pool, _pool_size
     with _lock:
         if _pool is None or _pool_size != size:
-            if _pool is not None:
-                _pool.shutdown(wait=False)
+            # The old pool is not shut down: another thread may still be submitting to it (its
+            # idle threads end when it is garbage collected).
             _pool = ThreadPoolExecutor(max_workers=size, thread_name_prefix="segsnake-worker")
             _pool_size = size
         return _pool
@@ -114,34 +114,34 @@ def slabs(shape: Sequence[int], axis: int) -> list[tuple[slice, ...]]:
             for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
 
 
-def _along_axes(array: np.ndarray, dtype, pass_1d: Callable[[np.ndarray, int, np.ndarray], None]
-                ) -> np.ndarray:
-    out = np.array(array, dtype=dtype, order="C")
-    for axis in range(out.ndim):
-        if out.shape[axis] > 1:
-            thread_map(lambda sl, axis=axis: pass_1d(out[sl], axis, out[sl]),
-                       slabs(out.shape, axis))
+def _along_axes(out: np.ndarray, axes: Sequence[int],
+                pass_1d: Callable[[np.ndarray, int, np.ndarray], None]) -> np.ndarray:
+    for axis in axes:
+        thread_map(lambda sl, axis=axis: pass_1d(out[sl], axis, out[sl]), slabs(out.shape, axis))
     return out
 
 
 def gaussian_filter(array: np.ndarray, sigma: Sequence[float], *, mode: str = "reflect",
-                    truncate: float = 4.0, dtype=np.float32) -> np.ndarray:
+                    truncate: float = 4.0, dtype=np.float32, copy: bool = True) -> np.ndarray:
     """``scipy.ndimage.gaussian_filter`` (per-axis ``sigma`` in voxels), in threads, as ``dtype``.
 
     Each axis' 1D pass runs on slabs cut across another axis, in place: the same numbers as one
-    ``gaussian_filter`` call on a ``dtype`` copy.
+    ``gaussian_filter`` call on a ``dtype`` copy (axes with ``sigma`` about 0 are skipped, as
+    scipy does). ``copy=False`` filters ``array`` itself when it is a C-ordered ``dtype`` array.
     """
     def pass_1d(src: np.ndarray, axis: int, dst: np.ndarray) -> None:
         ndimage.gaussian_filter1d(src, sigma[axis], axis=axis, mode=mode, truncate=truncate,
                                   output=dst)
 
-    return _along_axes(array, dtype, pass_1d)
+    out = np.array(array, dtype=dtype, order="C", copy=None if not copy else True)
+    return _along_axes(out, [a for a in range(out.ndim) if sigma[a] > 1e-15], pass_1d)
 
 
 def spline_filter(array: np.ndarray, *, dtype=np.float64) -> np.ndarray:
     """Cubic B-spline coefficients (``scipy.ndimage.spline_filter``, mirror boundary), in
-    threads, as ``dtype``."""
+    threads, as ``dtype`` (an axis of one sample is left as it is: it cannot be mirrored)."""
     def pass_1d(src: np.ndarray, axis: int, dst: np.ndarray) -> None:
         ndimage.spline_filter1d(src, order=3, axis=axis, mode="mirror", output=dst)
 
-    return _along_axes(array, dtype, pass_1d)
+    out = np.array(array, dtype=dtype, order="C")
+    return _along_axes(out, [a for a in range(out.ndim) if out.shape[a] > 1], pass_1d)

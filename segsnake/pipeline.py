@@ -220,9 +220,7 @@ def perpendicular_spacing(spacing: Sequence[float], axis: Sequence[float]) -> fl
 def _center_and_axis(model: SplineSurface) -> tuple[NDArray, NDArray | None]:
     """The centre of a sphere snake; for a cylinder its axis as (start point, end - start)."""
     if model.kind == "cylinder":
-        r0, r1 = model.end_rings(4 * model.m1)
-        c0 = r0.mean(axis=0)
-        return c0, r1.mean(axis=0) - c0
+        return model.axis_and_radius()[:2]
     return model.control_points().reshape(-1, 3).mean(axis=0), None
 
 
@@ -291,8 +289,6 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         return _segment(image, sp, config, model, progress, extra_energy, init_s)
     # Work in the frame whose first axis (the lookups' integration axis) runs across the
     # cylinder: there its open ends' missing caps carry no flux (segsnake.frames).
-    from segsnake.rasterize import rasterize
-
     t0 = time.perf_counter()
     framed = frame.image_in(image, sp)
     frame_s = time.perf_counter() - t0
@@ -302,7 +298,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     # The defaults that depend on the voxel size are the original image's.
     scale = config.scale if config.scale is not None else _default_scale(sp)
     res = _segment(framed, frame.spacing, config.replace(seed_point=seed, scale=scale),
-                   frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp))
+                   frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp),
+                   mask=frame.perm is not None)
     del framed
     res.model = frame.model_out(res.model)
     res.init_model = model
@@ -310,10 +307,10 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     if frame.perm is not None:
         res.mask = np.ascontiguousarray(np.transpose(res.mask, np.argsort(frame.perm)))
         res.settings["integration_axis"] = int(frame.perm[0])
-    else:
+    else:  # the mask of the original grid, not the rotated one's
         t0 = time.perf_counter()
-        res.mask = rasterize(res.model, image.shape, sp)
-        res.timings["mask_s"] += time.perf_counter() - t0
+        res.mask = _final_mask(res.model, image.shape, sp)
+        res.timings["mask_s"] = time.perf_counter() - t0
     res.settings["integration_direction"] = frame.integration_direction
     return res
 
@@ -323,10 +320,20 @@ def _default_scale(spacing: Sequence[float]) -> float:
     return max(1.0, 1.5 * max(spacing))
 
 
+def _final_mask(model: SplineSurface, shape, spacing) -> NDArray[np.bool_]:
+    from segsnake.rasterize import rasterize
+
+    mask = rasterize(model, shape, spacing)
+    if not mask.any():
+        raise SegmentationError("the final surface encloses no voxel centre")
+    return mask
+
+
 def _segment(image, sp, config, model, progress, extra_energy, init_s,
-             smooth_mm: float | None = None) -> SegmentResult:
+             smooth_mm: float | None = None, mask: bool = True) -> SegmentResult:
     """:func:`segment_volume` from the initial snake on, in the frame of ``image``
-    (``smooth_mm``: the edge map's smoothing, default the largest voxel size)."""
+    (``smooth_mm``: the edge map's smoothing, default the largest voxel size; ``mask=False``:
+    the caller rasterizes the result on another grid, ``SegmentResult.mask`` is None)."""
     from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
@@ -404,10 +411,8 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
             f"no boundary found: the final surface lies on almost no detected edge (mean edge "
             f"strength {support:.2f}, expected about 1); check the initialization or --scale")
     t0 = time.perf_counter()
-    mask = rasterize(model, shape, sp)
+    mask = _final_mask(model, shape, sp) if mask else None
     run.timings["mask_s"] = time.perf_counter() - t0
-    if not mask.any():
-        raise SegmentationError("the final surface encloses no voxel centre")
     report("done", 1.0)
     settings = {"edge_support": support, "scale_mm": scale, "smooth_mm": em.smooth_mm,
                 "regularization": REGULARIZATION,
@@ -468,7 +473,7 @@ class _Run:
         sigma = max(smooth_mm, 1.5)
         dist = distance_to(edges, self.sp)
         f_d = gaussian_filter(np.negative(dist, out=dist), [sigma / x for x in self.sp],
-                              mode="nearest")
+                              mode="nearest", copy=False)
         del dist
         lookup = Lookup.from_field(f_d, self.sp)
         del f_d
@@ -515,8 +520,7 @@ def edge_support(model: SplineSurface, f: NDArray, spacing: Sequence[float]) -> 
 
 def _model_radius(model: SplineSurface) -> float:
     if model.kind == "cylinder":
-        r0, _ = model.end_rings(4 * model.m1)
-        return float(np.linalg.norm(r0 - r0.mean(axis=0), axis=1).mean())
+        return model.axis_and_radius()[2]
     return float((3 * abs(model.volume(order=4)) / (4 * math.pi)) ** (1 / 3))
 
 
@@ -552,9 +556,11 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     twice the order must agree to ``QUADRATURE_RTOL``, else the next round runs at the finer
     order. The check matters: an under-resolved quadrature is not just inaccurate, the optimizer
     *exploits* it (it grows a spike whose few nodes all sit on favourable values; measured: order
-    4 gave -104695 where order 16 gives -92674 on a noisy ball). A stage stopped by the
-    iteration cap is checked too; ``quadrature_resolved`` in its history says whether the last
-    check agreed (``segment`` warns when not).
+    4 gave -104695 where order 16 gives -92674 on a noisy ball). So every
+    ``QUADRATURE_CHECK_EVERY`` iterations the running round is checked too, with the looser
+    ``QUADRATURE_RTOL_RUNNING``, and a failure ends it (:class:`_QuadratureCheck`). A stage
+    stopped by the iteration cap is checked too; ``quadrature_resolved`` in its history says
+    whether the last check agreed (``segment`` warns when not).
     """
     t0 = time.perf_counter()
     iterations, evaluations, history, checks = 0, 0, [], []
@@ -575,7 +581,9 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         evaluations += res.evaluations
         history += res.history
         capped = iterations >= config.max_iter
-        if check.failed:  # caught while running: on at the finer order
+        if check.failed:  # caught while running: on at the finer order, if iterations are left
+            if capped:
+                break
             floor = np.array(fine)
             continue
         if not capped and np.any(longest_intervals(model) >= 0.9 * max_interval):
@@ -596,10 +604,11 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
 
 
 class _QuadratureCheck:
-    """Does the image energy at ``order`` agree with the one at ``fine`` (``QUADRATURE_RTOL``)?
+    """Does the image energy at ``order`` agree with the one at ``fine``?
 
-    Called at the end of a round, and every ``QUADRATURE_CHECK_EVERY`` iterations while it runs
-    (:meth:`during`, the optimizer's callback, which stops the round at the first
+    Called at the end of a round (tolerance ``QUADRATURE_RTOL``), and every
+    ``QUADRATURE_CHECK_EVERY`` iterations while it runs (:meth:`during`, the optimizer's
+    callback, tolerance ``QUADRATURE_RTOL_RUNNING``, which stops the round at the first
     disagreement): an optimizer that exploits a coarse quadrature does so progressively, and
     caught late the finer round starts far from the boundary with few iterations left
     (measured: a tube along (1, 0.3, 1) ran 220 iterations into a shape whose order-8 energy

@@ -619,6 +619,13 @@ class CylinderModel(SplineSurface):
         s, _, _ = self.evaluate(u, [0.0, 1.0])
         return s[:, 0], s[:, 1]
 
+    def axis_and_radius(self) -> tuple[NDArray, NDArray, float]:
+        """Centre of the ``v = 0`` end ring, the vector to the ``v = 1`` ring's centre, and the
+        ``v = 0`` ring's mean radius."""
+        r0, r1 = self.end_rings(4 * self.m1)
+        c0 = r0.mean(axis=0)
+        return c0, r1.mean(axis=0) - c0, float(np.linalg.norm(r0 - c0, axis=1).mean())
+
     def volume(self, order: int = 8) -> float:
         """Volume closed by planar caps through the end rings.
 

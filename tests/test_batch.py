@@ -316,6 +316,14 @@ def test_existing_results_need_resume_or_overwrite(tmp_path, images, capsys):
     assert len(again) == 1 and again[0]["dice"] == first[0]["dice"]
     assert again[0]["summary"]["pid"] != first[0]["summary"]["pid"]  # really ran again
     assert main(["batch", str(path), "--resume", "--overwrite"]) == 2
+    capsys.readouterr()
+    # A bad thread count in the environment stops before the earlier results are touched.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SEGSNAKE_NUM_THREADS", "0")
+        assert main(["batch", str(path), "--runner", RUNNER, "-q", "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("segsnake batch: error: ") and "SEGSNAKE_NUM_THREADS" in err
+    assert read_results(tmp_path / "out" / "results.jsonl") == again
 
 
 def test_a_second_batch_on_the_same_directory_is_refused(tmp_path, images):

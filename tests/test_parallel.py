@@ -71,7 +71,12 @@ def test_slab_filters_equal_scipy(two_threads):
     expected = ndimage.spline_filter(a.astype(np.float64), order=3, mode="mirror")
     got = parallel.spline_filter(a)
     assert got.dtype == np.float64 and np.array_equal(got, expected)
-    # An axis of one sample is left alone (a mirror boundary needs two).
+    # An axis of one sample: smoothed like scipy does (mode constant scales it), or skipped
+    # with sigma 0; the spline prefilter leaves it alone (a mirror boundary needs two).
+    thin = a[:, :1, :]
+    for sigma in [(1.0, 0.8, 1.2), (1.0, 0.0, 1.2)]:
+        expected = ndimage.gaussian_filter(thin, sigma, mode="constant", output=np.float32)
+        assert np.array_equal(parallel.gaussian_filter(thin, sigma, mode="constant"), expected)
     flat = a[:, :1, :]
     expected = ndimage.spline_filter1d(flat.astype(np.float64), order=3, axis=0, mode="mirror")
     expected = ndimage.spline_filter1d(expected, order=3, axis=2, mode="mirror")

@@ -61,6 +61,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     from segsnake.batch import load_batch, run_batch
+    from segsnake.parallel import threads
+
+    threads()  # a bad SEGSNAKE_NUM_THREADS stops here, before any work
 
     if args.resume and args.overwrite:
         raise ConfigError("--resume and --overwrite contradict each other: pick one")
