@@ -55,6 +55,8 @@ REGULARIZATION = 1.0
 #: Sheet mode with a polarity: the inner face is searched this deep inside the sheet's mid-surface
 #: (mm; at least 3 detector scales). A brain's CSF and skull together are 5-10 mm thick.
 INNER_FACE_DEPTH_MM = 10.0
+#: ... after a refinement of the sheet stopped at this relative energy change per iteration.
+INNER_FACE_SHEET_TOL = 1e-4
 #: Below this mean edge strength under the final surface the segmentation is a failure.
 MIN_EDGE_SUPPORT = 0.15
 #: A-priori quadrature: nodes this many feature widths apart (see :func:`quadrature_order`),
@@ -378,10 +380,15 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         radial = _radial_field(shape, sp, *_center_and_axis(model))
         out = np.sign(_dot(em.normals, radial))[..., None] * em.normals
         polarity = "none"
-    model = run.refine(model, em, out, min(em.smooth_mm, scale))
+    inner_face = sheet and config.polarity in ("bright", "dark")
+    # Before an inner face, the sheet only has to be found well enough to place the band inside
+    # it: the capture's tolerance (measured on the T1 brain: its last three stages took 345
+    # iterations, now 242; same Dice).
+    model = run.refine(model, em, out, min(em.smooth_mm, scale),
+                       tol=INNER_FACE_SHEET_TOL if inner_face else None)
     support = edge_support(model, em.f, sp)
 
-    if sheet and config.polarity in ("bright", "dark"):
+    if inner_face:
         # An object enclosed by a sheet (a brain in its CSF) ends at the sheet's inner face:
         # the step from the object to the sheet, just inside the sheet's mid-surface. For a
         # dark sheet the inside is brighter than the sheet, for a bright one darker.
@@ -486,7 +493,7 @@ class _Run:
         return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
                            2 * sigma, tol=1e-4, node_spacing=node_spacing)
 
-    def refine(self, model, em, out: NDArray, feature_mm: float):
+    def refine(self, model, em, out: NDArray, feature_mm: float, tol: float | None = None):
         """The region integral of n_out . grad f, n_out the detected normal oriented outward.
 
         Its first variation is n_out . grad f on the surface, which vanishes exactly on the
@@ -500,7 +507,7 @@ class _Run:
         lookup = Lookup.from_field(along.astype(np.float32), self.sp, divergence_of_gradient=False)
         del along
         self.timings["lookup_s"] += time.perf_counter() - t0
-        return self._stage("refine", model, lookup, em.smooth_mm, feature_mm)
+        return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol)
 
 
 def edge_support(model: SplineSurface, f: NDArray, spacing: Sequence[float]) -> float:
