@@ -64,7 +64,7 @@ import numpy as np
 from scipy import ndimage
 
 from segsnake.errors import SegmentationError
-from segsnake.parallel import gaussian_filter, spline_filter, thread_map, threads
+from segsnake.parallel import gaussian_filter, pieces, spline_filter, thread_map, threads
 
 __all__ = [
     "EdgeMap",
@@ -311,8 +311,8 @@ def _along_normal(coef, normals, sp, idx):
     nrm[nrm == 0] = 1.0
     step = (d / nrm[:, None]).T
     # Both sides, each in slices of the points, in parallel threads.
-    cuts = np.linspace(0, len(idx), max(1, min(threads(), len(idx) // 4096)) + 1).astype(int)
-    jobs = [(sign, slice(lo, hi)) for sign in (1.0, -1.0) for lo, hi in zip(cuts[:-1], cuts[1:])]
+    per = max(4096, -(-len(idx) // threads()))
+    jobs = [(sign, sl) for sign in (1.0, -1.0) for sl in pieces(len(idx), per)]
     parts = thread_map(lambda job: ndimage.map_coordinates(
         coef, ijk[:, job[1]] + job[0] * step[:, job[1]], order=3, mode="mirror",
         prefilter=False), jobs)

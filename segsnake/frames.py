@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from segsnake.parallel import thread_map
+from segsnake.parallel import pieces, thread_map
 from segsnake.surfaces import SplineSurface
 
 __all__ = ["Frame", "flux_frame", "OBLIQUE_TOL"]
@@ -116,8 +116,7 @@ class Frame:
                                                 output=np.float32)
 
         per = max(1, _PIECE // max(self.shape[1] * self.shape[2], 1))
-        thread_map(piece, [slice(lo, min(lo + per, self.shape[0]))
-                           for lo in range(0, self.shape[0], per)])
+        thread_map(piece, pieces(self.shape[0], per))
         return out
 
 

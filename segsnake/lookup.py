@@ -50,7 +50,7 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from segsnake.parallel import slabs, spline_filter, thread_map
+from segsnake.parallel import pieces, slabs, spline_filter, thread_map
 
 __all__ = ["Lookup", "bspline_weights"]
 
@@ -258,12 +258,11 @@ class Lookup:
         # In blocks: the 64 coefficients gathered per point then stay in cache through the
         # contractions (measured: 1.9x faster than one pass over 100k points); the blocks, of
         # equal sizes, run in parallel threads.
-        cuts = np.linspace(0, len(p), -(-len(p) // _BLOCK) + 1).astype(int)
 
         def block(sl: slice) -> None:
             g[sl], grad[sl] = self._sample_block(p[sl])
 
-        thread_map(block, [slice(lo, hi) for lo, hi in zip(cuts[:-1], cuts[1:])])
+        thread_map(block, pieces(len(p), _BLOCK))
         if single:
             return g[0], grad[0]
         return g, grad

@@ -22,8 +22,8 @@ from scipy import ndimage
 
 from segsnake.errors import ConfigError
 
-__all__ = ["threads", "set_threads", "thread_map", "slabs", "gaussian_filter", "spline_filter",
-           "ENV"]
+__all__ = ["threads", "set_threads", "thread_map", "pieces", "slabs", "gaussian_filter",
+           "spline_filter", "ENV"]
 
 ENV = "SEGSNAKE_NUM_THREADS"
 
@@ -75,10 +75,10 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
     when called from inside a pool thread (nested calls would wait on their own pool).
     """
     items = list(items)
-    n = min(threads(), len(items))
-    if n <= 1 or threading.current_thread().name.startswith("segsnake-worker"):
+    n = threads()
+    if min(n, len(items)) <= 1 or threading.current_thread().name.startswith("segsnake-worker"):
         return [fn(x) for x in items]
-    return list(_executor(threads()).map(fn, items))
+    return list(_executor(n).map(fn, items))
 
 
 def _forget_pool() -> None:
@@ -102,6 +102,14 @@ def _executor(size: int) -> ThreadPoolExecutor:
         return _pool
 
 
+def pieces(n: int, max_size: int) -> list[slice]:
+    """``range(n)`` cut into the fewest slices of equal sizes (within one) of at most
+    ``max_size`` items (one empty slice for ``n = 0``)."""
+    count = max(-(-n // max(int(max_size), 1)), 1)
+    bounds = np.linspace(0, n, count + 1).astype(int)
+    return [slice(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:])]
+
+
 def slabs(shape: Sequence[int], axis: int) -> list[tuple[slice, ...]]:
     """Index tuples cutting an array of ``shape`` into :func:`threads` slabs, across the longest
     axis other than ``axis`` (so a 1D pass along ``axis`` runs on each slab independently)."""
@@ -109,9 +117,8 @@ def slabs(shape: Sequence[int], axis: int) -> list[tuple[slice, ...]]:
     if not others:
         return [tuple(slice(None) for _ in shape)]
     cut = max(others, key=lambda a: shape[a])
-    bounds = np.linspace(0, shape[cut], min(threads(), shape[cut]) + 1).astype(int)
-    return [tuple(slice(lo, hi) if a == cut else slice(None) for a in range(len(shape)))
-            for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
+    return [tuple(sl if a == cut else slice(None) for a in range(len(shape)))
+            for sl in pieces(shape[cut], -(-shape[cut] // threads()))]
 
 
 def _along_axes(out: np.ndarray, axes: Sequence[int],
@@ -133,7 +140,7 @@ def gaussian_filter(array: np.ndarray, sigma: Sequence[float], *, mode: str = "r
         ndimage.gaussian_filter1d(src, sigma[axis], axis=axis, mode=mode, truncate=truncate,
                                   output=dst)
 
-    out = np.array(array, dtype=dtype, order="C", copy=None if not copy else True)
+    out = np.array(array, dtype=dtype, order="C", copy=True if copy else None)
     return _along_axes(out, [a for a in range(out.ndim) if sigma[a] > 1e-15], pass_1d)
 
 

@@ -579,7 +579,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
                       for length, lo in zip(max_interval, floor))
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
         energy = _stage_energy(model, lookup, weight, order, extra_energy)
-        check = _QuadratureCheck(model, lookup, weight, order, fine, checks)
+        check = _QuadratureCheck(energy.terms[0], fine, checks)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
                               tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
                               admissible=_Admissible(model, max_interval), callback=check.during)
@@ -623,14 +623,18 @@ class _QuadratureCheck:
     to ``checks``.
     """
 
-    def __init__(self, model, lookup, weight, order, fine, checks: list) -> None:
-        self.model, self.lookup, self.weight = model, lookup, weight
-        self.order, self.fine, self.checks = order, fine, checks
+    def __init__(self, coarse: FluxTerm, fine: tuple[int, int], checks: list) -> None:
+        self.coarse, self.fine, self.checks = coarse, fine, checks
+        self.order = coarse.order
+        self._fine_term: FluxTerm | None = None  # built on the first check (its basis costs)
         self.failed = False
 
     def __call__(self, params: NDArray, when: str = "converged") -> bool:
-        coarse_e, fine_e = (FluxTerm(self.model, self.lookup, weight=self.weight, order=o)
-                            .value_and_grad(params)[0] for o in (self.order, self.fine))
+        if self._fine_term is None:
+            c = self.coarse
+            self._fine_term = FluxTerm(c.model, c.sampler, weight=c.weight, order=self.fine)
+        coarse_e = self.coarse.value_and_grad(params)[0]
+        fine_e = self._fine_term.value_and_grad(params)[0]
         error = abs(fine_e - coarse_e) / max(abs(fine_e), 1e-300)
         self.checks.append({"order": list(self.order), "relative_error": error, "when": when})
         return error <= (QUADRATURE_RTOL if when == "converged" else QUADRATURE_RTOL_RUNNING)
@@ -675,7 +679,8 @@ class _Admissible:
         return bool(np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0))
 
 
-def _stage_energy(model, lookup, weight, order, extra_energy):
+def _stage_energy(model, lookup, weight, order, extra_energy) -> SumEnergy:
+    """The stage's energy; its first term is the image's :class:`FluxTerm`."""
     flux = FluxTerm(model, lookup, weight=weight, order=order)
     terms = [flux]
     if REGULARIZATION > 0:

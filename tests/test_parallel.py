@@ -99,3 +99,12 @@ def test_lookup_and_derivatives_do_not_depend_on_threads():
     for other in results[1:]:
         for x, y in zip(results[0], other):
             assert np.array_equal(x, y)
+
+
+@pytest.mark.parametrize("n,size", [(0, 5), (1, 1), (10, 4), (9, 3), (4097, 4096), (3, 100)])
+def test_pieces_are_few_equal_and_cover_the_range(n, size):
+    got = parallel.pieces(n, size)
+    assert len(got) == max(-(-n // size), 1)
+    lengths = [s.stop - s.start for s in got]
+    assert max(lengths) <= size and max(lengths) - min(lengths) <= 1
+    assert [i for s in got for i in range(s.start, s.stop)] == list(range(n))
