@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from segsnake.lookup import Lookup, bspline_weights
+from segsnake import _sampling
+from segsnake.lookup import Lookup
 
 SPACING = (0.8, 1.0, 1.3)
 SHAPE = (60, 50, 40)
@@ -129,14 +130,24 @@ def test_interpolant_is_scipy_cubic_spline_and_passes_through_samples():
     assert np.abs(gi - values.ravel()).max() < 1e-12
 
 
-def test_bspline_weights_partition_of_unity_and_derivatives():
-    u = np.linspace(0, 1, 11)
-    w, dw = bspline_weights(u)
-    assert np.allclose(w.sum(-1), 1.0) and np.allclose(dw.sum(-1), 0.0)
-    h = 1e-6
-    wp, _ = bspline_weights(u[1:-1] + h)
-    wm, _ = bspline_weights(u[1:-1] - h)
-    assert np.allclose((wp - wm) / (2 * h), dw[1:-1], atol=1e-8)
+def test_weights_are_a_partition_of_unity():
+    # A constant is reproduced exactly with a zero gradient only if the compiled kernel's four
+    # weights sum to one and their derivatives to zero at every fractional position.
+    lk = Lookup(np.full((6, 5, 7), 2.5), SPACING)
+    t = np.random.default_rng(1).uniform(0, 1, (5000, 3)) * (np.asarray(lk.shape) - 1)
+    g, dg = lk.sample(t * SPACING)
+    assert np.abs(g - 2.5).max() < 1e-13 and np.abs(dg).max() < 1e-12
+
+
+def test_kernel_rejects_mismatched_buffers():
+    lk = Lookup(np.zeros((4, 4, 4)), SPACING)
+    p = np.zeros((3, 3))
+    with pytest.raises(ValueError, match="g_out"):
+        _sampling.sample(lk._flat, lk._pshape, lk.shape, lk.spacing, p, np.empty(2),
+                         np.empty((3, 3)))
+    with pytest.raises(ValueError, match="padded_shape"):
+        _sampling.sample(lk._flat, lk.shape, lk.shape, lk.spacing, p, np.empty(3),
+                         np.empty((3, 3)))
 
 
 @pytest.mark.parametrize("shape", [(12, 9, 10), (2, 5, 3), (1, 6, 7)])

@@ -1,0 +1,5 @@
+"""Build the one compiled kernel; everything else is in pyproject.toml."""
+
+from setuptools import Extension, setup
+
+setup(ext_modules=[Extension("segsnake._sampling", ["segsnake/_sampling.c"])])
