@@ -86,30 +86,25 @@ def _deriv(a: np.ndarray, axis: int, h: float, order: int) -> np.ndarray:
 
 def _cumint_x(g: np.ndarray, h: float) -> np.ndarray:
     """4th-order cumulative integral along axis 0 from the first plane (float64), in threads
-    over slabs cut across another axis."""
+    over slabs cut across another axis, each written straight into the result."""
     out = np.empty_like(g, dtype=np.float64)
-
-    def slab(sl: tuple[slice, ...]) -> None:
-        out[sl] = _cumint_x_slab(g[sl], h)
-
-    thread_map(slab, slabs(g.shape, 0))
+    thread_map(lambda sl: _cumint_x_slab(g[sl], h, out[sl]), slabs(g.shape, 0))
     return out
 
 
-def _cumint_x_slab(g: np.ndarray, h: float) -> np.ndarray:
-    n = g.shape[0]
-    out = np.empty_like(g, dtype=np.float64)
+def _cumint_x_slab(g: np.ndarray, h: float, out: np.ndarray) -> None:
     out[0] = 0.0
-    if n == 1:
-        return out
-    np.cumsum(g[1:], axis=0, out=out[1:])
-    out[1:] += np.cumsum(g[:-1], axis=0)
-    out *= 0.5 * h
-    if n >= 3:
+    if g.shape[0] == 1:
+        return
+    np.add(g[1:], g[:-1], out=out[1:])
+    np.cumsum(out[1:], axis=0, out=out[1:])
+    out *= 0.5 * h  # the trapezoid rule
+    if g.shape[0] >= 3:
         # Euler-Maclaurin end correction with a second-order derivative of g.
         dg = np.gradient(g, h, axis=0, edge_order=2)
-        out -= (h * h / 12.0) * (dg - dg[0])
-    return out
+        dg -= dg[0]
+        dg *= h * h / 12.0
+        out -= dg
 
 
 class Lookup:
@@ -138,9 +133,17 @@ class Lookup:
             raise ValueError("lookup values contain NaN or Inf")
         self.shape = tuple(int(s) for s in values.shape)
         self.spacing = _check_spacing(spacing)
-        coef = spline_filter(values)  # (an axis of a single sample is left as it is)
-        ix = [_mirror_index(np.arange(-_PAD, n + _PAD), n) for n in self.shape]
-        self.coef = np.ascontiguousarray(coef[np.ix_(*ix)])
+        # The coefficients are computed inside the padded array, whose borders are then
+        # mirrored axis by axis (corners included); an axis of one sample is left as it is.
+        self.coef = np.empty(tuple(n + 2 * _PAD for n in self.shape))
+        inner = tuple(slice(_PAD, n + _PAD) for n in self.shape)
+        spline_filter(values, out=self.coef[inner])
+        for axis, n in enumerate(self.shape):
+            for pads in (np.arange(-_PAD, 0), np.arange(n, n + _PAD)):
+                sl = [slice(None)] * 3
+                sl[axis] = pads + _PAD
+                self.coef[tuple(sl)] = np.take(self.coef, _mirror_index(pads, n) + _PAD,
+                                               axis=axis)
         self._flat = self.coef.reshape(-1)
         self._pshape = tuple(int(s) for s in self.coef.shape)
 

@@ -144,11 +144,17 @@ def gaussian_filter(array: np.ndarray, sigma: Sequence[float], *, mode: str = "r
     return _along_axes(out, [a for a in range(out.ndim) if sigma[a] > 1e-15], pass_1d)
 
 
-def spline_filter(array: np.ndarray, *, dtype=np.float64) -> np.ndarray:
+def spline_filter(array: np.ndarray, *, dtype=np.float64, out: np.ndarray | None = None) -> np.ndarray:
     """Cubic B-spline coefficients (``scipy.ndimage.spline_filter``, mirror boundary), in
-    threads, as ``dtype`` (an axis of one sample is left as it is: it cannot be mirrored)."""
+    threads, as ``dtype`` (an axis of one sample is left as it is: it cannot be mirrored).
+
+    ``out``: an array (or a view) of ``array``'s shape to write the coefficients into.
+    """
     def pass_1d(src: np.ndarray, axis: int, dst: np.ndarray) -> None:
         ndimage.spline_filter1d(src, order=3, axis=axis, mode="mirror", output=dst)
 
-    out = np.array(array, dtype=dtype, order="C")
+    if out is None:
+        out = np.array(array, dtype=dtype, order="C")
+    else:
+        out[...] = array
     return _along_axes(out, [a for a in range(out.ndim) if out.shape[a] > 1], pass_1d)
