@@ -460,5 +460,6 @@ def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, mo
     ax3.set_box_aspect(np.ptp(pts, axis=0) + 1e-9)
     ax3.set_title("surface (mm)", fontsize=9)
     ax3.tick_params(labelsize=6)
-    fig.tight_layout()
+    # Fixed margins: tight_layout measured 0.15 s of text extents for the same result.
+    fig.subplots_adjust(left=0.045, right=0.985, bottom=0.15, top=0.9, wspace=0.32)
     fig.savefig(path, format="png")
