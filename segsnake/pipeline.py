@@ -40,7 +40,7 @@ from segsnake.energy import AxialTension, FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.frames import flux_frame
 from segsnake.optimize import minimize_energy
-from segsnake.parallel import gaussian_filter
+from segsnake.parallel import gaussian_filter, pieces, thread_map
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
@@ -226,24 +226,37 @@ def _center_and_axis(model: SplineSurface) -> tuple[NDArray, NDArray | None]:
     return model.control_points().reshape(-1, 3).mean(axis=0), None
 
 
-def _radial_field(shape: Sequence[int], spacing: Sequence[float], center: NDArray,
-                  axis: NDArray | None) -> list[NDArray]:
-    """Unit vectors pointing away from a centre, or from the nearest point of an axis segment.
+def _radial_cosine(normals: NDArray, spacing: Sequence[float], center: NDArray,
+                   axis: NDArray | None) -> NDArray:
+    """``n . r`` per voxel (float32), ``r`` the unit vector pointing away from a centre, or from
+    the nearest point of an axis segment.
 
     For a cylinder, ``center`` is the axis start and ``axis`` runs to its end: inside the
-    segment's slab the vectors are radial, beyond an end they point away from that end's centre
-    (so the ends of a tube are pushed along it).
+    segment's slab ``r`` is radial, beyond an end it points away from that end's centre (so the
+    ends of a tube are pushed along it). Computed in slabs of planes in threads: the whole
+    field as float64 arrays took 0.25 s on a 128^3 tube.
     """
-    grids = np.meshgrid(*[np.arange(n, dtype=np.float32) * np.float32(s)
-                          for n, s in zip(shape, spacing)], indexing="ij", sparse=True)
-    d = [g - np.float32(c) for g, c in zip(grids, center)]
-    if axis is not None:
-        length = float(np.linalg.norm(axis))
-        a = np.asarray(axis, dtype=np.float64) / max(length, 1e-12)
-        along = np.clip(d[0] * a[0] + d[1] * a[1] + d[2] * a[2], 0.0, length)
-        d = [di - along * np.float32(ai) for di, ai in zip(d, a)]
-    norm = np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2) + np.float32(1e-6)
-    return [np.broadcast_to(di / norm, tuple(shape)) for di in d]
+    shape = normals.shape[:3]
+    sp = [float(s) for s in spacing]
+    c = [float(x) for x in center]
+    length = float(np.linalg.norm(axis)) if axis is not None else 0.0
+    a = [float(x) / max(length, 1e-12) for x in axis] if axis is not None else None
+    out = np.empty(shape, dtype=np.float32)
+    ys = (np.arange(shape[1], dtype=np.float32) * sp[1] - c[1])[None, :, None]
+    zs = (np.arange(shape[2], dtype=np.float32) * sp[2] - c[2])[None, None, :]
+
+    def slab(sl: slice) -> None:
+        xs = (np.arange(sl.start, sl.stop, dtype=np.float32) * sp[0] - c[0])[:, None, None]
+        d = [xs, ys, zs]
+        if a is not None:
+            along = np.clip(xs * a[0] + ys * a[1] + zs * a[2], 0.0, length)
+            d = [di - along * ai for di, ai in zip(d, a)]
+        n = normals[sl]
+        norm = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) + 1e-6
+        out[sl] = (n[..., 0] * d[0] + n[..., 1] * d[1] + n[..., 2] * d[2]) / norm
+
+    thread_map(slab, pieces(shape[0], 16))
+    return out
 
 
 def _polarity(model: SplineSurface, gradient: NDArray, spacing: Sequence[float]) -> int:
@@ -360,16 +373,15 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
     if sheet:
         # A sheet around the object faces its centre (thesis sec. 7.2.2: keep the voxels whose
         # normal points to the centre); sheets that run radially (sulci, septa) are not it.
-        radial = _radial_field(shape, sp, *_center_and_axis(model))
-        _discard(em, np.abs(_dot(em.normals, radial)) >= 0.5)
+        _discard(em, np.abs(_radial_cosine(em.normals, sp, *_center_and_axis(model))) >= 0.5)
     run.timings["edge_map_s"] = time.perf_counter() - t0
     report("edge map", 0.15)
 
     model = run.capture(model, em.mask, em.smooth_mm)
     report("snake", 0.5)
     if sheet:
-        radial = _radial_field(shape, sp, *_center_and_axis(model))
-        out = np.sign(_dot(em.normals, radial))[..., None] * em.normals
+        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(model)))[..., None] \
+            * em.normals
         polarity = "sheet"
     elif config.polarity in ("auto", "bright", "dark"):
         pol = _polarity(model, em.gradient, sp) if config.polarity == "auto" else \
@@ -377,8 +389,8 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         polarity = "bright" if pol > 0 else "dark"
         out = -pol * em.normals  # normals point to the brighter side
     else:
-        radial = _radial_field(shape, sp, *_center_and_axis(model))
-        out = np.sign(_dot(em.normals, radial))[..., None] * em.normals
+        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(model)))[..., None] \
+            * em.normals
         polarity = "none"
     inner_face = sheet and config.polarity in ("bright", "dark")
     # Before an inner face, the sheet only has to be found well enough to place the band inside
@@ -403,8 +415,8 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None, region=band,
                         smooth_mm=smooth_mm)
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
-        radial = _radial_field(shape, sp, *_center_and_axis(model))
-        band &= -pol * _dot(face.normals, radial) >= 0.5  # steps that face the sheet
+        # steps that face the sheet
+        band &= -pol * _radial_cosine(face.normals, sp, *_center_and_axis(model)) >= 0.5
         low, high = auto_levels(face.response[face.mask & band])
         _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
         run.timings["edge_map_s"] += time.perf_counter() - t0
@@ -427,10 +439,6 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
                 "edge_voxels": int(em.mask.sum())}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
                          run.timings, polarity, init, settings)
-
-
-def _dot(vectors: NDArray, field: list[NDArray]) -> NDArray:
-    return sum(vectors[..., d] * field[d] for d in range(3))
 
 
 def _discard(em, keep: NDArray | None) -> None:
