@@ -662,16 +662,20 @@ class _Admissible:
     folds through itself, and a quasi-Newton step will find that. A fold starts as a place
     where the surface turns over, i.e. where its normal reverses; so a step is refused if any
     normal on a grid turned by more than 90 degrees since the start of the stage (a stage
-    moves the surface by a few ridge widths, far less than would turn a normal over). The knot
-    intervals next to the poles are left out: there the normal is set by the pole tangents,
-    whose joint rotation in the tangent plane is a harmless reparameterization.
+    moves the surface by a few ridge widths, far less than would turn a normal over). The two
+    knot intervals next to each pole are left out: there the grid's normal also depends on the
+    pole tangents, whose joint rotation in the tangent plane is a harmless reparameterization.
+    (With only the first interval left out, one grid normal in the second turning over froze
+    whole refinements: a ball and an ellipsoid phantom of 48 stopped at Dice 0.90 and 0.84, and
+    changes of 1e-13 in the gradient decided which phantoms did. Left out, they converge to
+    surfaces with every normal within 40 degrees of radial.)
     """
 
     def __init__(self, start: SplineSurface, max_interval: NDArray, per_interval: int = 3) -> None:
         self.start = start
         self.max_interval = max_interval
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
-        skip = per_interval if start.kind == "sphere" else 0  # the sphere's pole intervals
+        skip = 2 * per_interval if start.kind == "sphere" else 0  # two intervals at each pole
         rows = np.arange(skip, per_interval * start.m2 - skip)
         v = (rows + 0.5) / (per_interval * start.m2)
         self.basis = start.grid_basis(u, v)

@@ -63,27 +63,40 @@ class GridBasis:
     Bv: sp.csr_matrix
     dBv: sp.csr_matrix
 
+    def __post_init__(self) -> None:
+        # Stacked once, so that evaluate and adjoint are five sparse products on all three
+        # coordinates at once (were fifteen: 0.3-0.5 ms an energy evaluation).
+        stack_u = sp.vstack([self.Bu, self.dBu]).tocsr()  # (2 nu, M1): [Bu; dBu]
+        stack_v = sp.vstack([self.Bv, self.dBv]).tocsr()  # (2 nv, L): [Bv; dBv]
+        object.__setattr__(self, "_stack_u", stack_u)
+        object.__setattr__(self, "_stack_v", stack_v)
+        object.__setattr__(self, "_stack_u_t", stack_u.T.tocsr())
+        object.__setattr__(self, "_stack_v_t", stack_v.T.tocsr())
+        object.__setattr__(self, "_bu_t", self.Bu.T.tocsr())
+
     def evaluate(self, C: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         """sigma, sigma_u, sigma_v, each ``(nu, nv, 3)``, from a full grid ``C (M1, L, 3)``."""
-        # (M1, L, 3) -> per coordinate products; moveaxis keeps coordinates last.
-        P = np.stack([self.Bv @ C[:, :, d].T for d in range(3)], axis=-1)  # (nv, M1, 3)
-        dP = np.stack([self.dBv @ C[:, :, d].T for d in range(3)], axis=-1)
-        sig = np.stack([self.Bu @ P[:, :, d].T for d in range(3)], axis=-1)
-        sig_u = np.stack([self.dBu @ P[:, :, d].T for d in range(3)], axis=-1)
-        sig_v = np.stack([self.Bu @ dP[:, :, d].T for d in range(3)], axis=-1)
-        return sig, sig_u, sig_v
+        m1, n_l, _ = C.shape
+        nu, nv = self.Bu.shape[0], self.Bv.shape[0]
+        # [Bv; dBv] C per coordinate, then [Bu; dBu] times [P, dP]: (2, nu, 2, nv, 3).
+        P = self._stack_v @ C.transpose(1, 0, 2).reshape(n_l, m1 * 3)  # (2 nv, M1 * 3)
+        P = P.reshape(2, nv, m1, 3).transpose(2, 0, 1, 3).reshape(m1, 2 * nv * 3)
+        Q = (self._stack_u @ P).reshape(2, nu, 2, nv, 3)
+        return Q[0, :, 0], Q[1, :, 0], Q[0, :, 1]
 
     def adjoint(self, g: NDArray, g_u: NDArray, g_v: NDArray) -> NDArray:
         """Gradient on the full grid ``(M1, L, 3)`` from gradients on sigma, sigma_u, sigma_v.
 
         The transpose of :meth:`evaluate`: ``dE/dC = Bu^T g Bv + dBu^T g_u Bv + Bu^T g_v dBv``.
         """
-        out = []
-        for d in range(3):
-            left = self.Bu.T @ g[:, :, d] + self.dBu.T @ g_u[:, :, d]  # (M1, nv)
-            res = (self.Bv.T @ left.T).T + (self.dBv.T @ (self.Bu.T @ g_v[:, :, d]).T).T
-            out.append(res)
-        return np.stack(out, axis=-1)
+        nu, nv = self.Bu.shape[0], self.Bv.shape[0]
+        m1, n_l = self.Bu.shape[1], self.Bv.shape[1]
+        left = np.empty((m1, 2, nv, 3))
+        left[:, 0] = (self._stack_u_t @ np.concatenate([g, g_u]).reshape(2 * nu, nv * 3)
+                      ).reshape(m1, nv, 3)
+        left[:, 1] = (self._bu_t @ g_v.reshape(nu, nv * 3)).reshape(m1, nv, 3)
+        out = self._stack_v_t @ left.transpose(1, 2, 0, 3).reshape(2 * nv, m1 * 3)  # (L, M1*3)
+        return out.reshape(n_l, m1, 3).transpose(1, 0, 2)
 
 
 def gauss_legendre_grid(n_intervals: int, order: int) -> tuple[NDArray, NDArray]:
