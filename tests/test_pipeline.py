@@ -228,14 +228,27 @@ def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
     assert abs(e8 - e16) <= 1e-4 * abs(e16)
 
     # Checked while running (here after every iteration, with a tight tolerance), the
-    # first round stops at its first iteration and the stage goes on at order 8.
+    # first round stops at its first iteration and the stage goes on at order 8, from the
+    # last shape it trusted: the start (not from the step the coarse rule made).
     monkeypatch.setattr(pipeline, "QUADRATURE_CHECK_EVERY", 1)
     monkeypatch.setattr(pipeline, "QUADRATURE_RTOL_RUNNING", 1e-5)
+    starts, ends = [], []
+    real = pipeline.minimize_energy
+
+    def spy(m, energy, **kwargs):
+        starts.append(m.params.copy())
+        res = real(m, energy, **kwargs)
+        ends.append(res.model.params.copy())
+        return res
+
+    monkeypatch.setattr(pipeline, "minimize_energy", spy)
     out, info = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
                                     feature_mm=4.0)
     first = info["quadrature_checks"][0]
     assert first["when"] == "running" and first["order"] == [4, 4]
     assert first["relative_error"] > 1e-5
+    assert not np.array_equal(ends[0], model.params)  # the first round did move
+    assert np.array_equal(starts[1], model.params)
     assert {tuple(c["order"]) for c in info["quadrature_checks"][1:]} == {(8, 8)}
     assert info["quadrature_resolved"] and info["quadrature_order"] == (8, 8)
 
