@@ -7,15 +7,16 @@
  *
  * The semantics are those documented in lookup.py (Lookup.sample): points in mm, divided by the
  * spacing; clamped to the grid box [0, n - 1] per axis with that gradient component set to 0
- * outside; a NaN coordinate gives NaN outputs. The coefficients are mirror-padded by PAD = 2 on
- * every side, so every index below is inside the padded array.
+ * outside; a NaN or infinite coordinate gives NaN outputs. The coefficients are mirror-padded
+ * by PAD = 2 on every side, so every index below is inside the padded array.
  *
- * Plain C on Python buffers (no numpy headers); the GIL is released, so blocks of points run in
- * parallel threads.
+ * Plain C on Python buffers (no numpy headers; the buffers' format must be float64); the GIL
+ * is released, so blocks of points run in parallel threads.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <string.h>
 
 static void weights(double u, double w[4], double dw[4])
 {
@@ -43,7 +44,7 @@ static void sample_points(const double *coef, const Py_ssize_t pshape[3], const 
         for (int d = 0; d < 3; d++) {
             double hi = (double)(shape[d] - 1);
             double t = p[d] / spacing[d];
-            if (isnan(t)) {
+            if (!isfinite(t)) { /* NaN or Inf in, NaN out (a clamped value would look plausible) */
                 bad = 1;
                 t = 0.0;
             }
@@ -86,10 +87,22 @@ static void sample_points(const double *coef, const Py_ssize_t pshape[3], const 
     }
 }
 
-static int check_buffer(Py_buffer *b, Py_ssize_t count, const char *name)
+/* A C-contiguous float64 buffer of exactly `count` values (PyBUF_FORMAT: an int64 array of
+ * the same size is refused, not read as doubles). 0 on success, -1 with an exception set. */
+static int get_doubles(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count,
+                       const char *name)
 {
-    if (b->itemsize != sizeof(double) || b->len != count * (Py_ssize_t)sizeof(double)) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values", name, count);
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0)
+        return -1;
+    const char *f = view->format ? view->format : "B";
+    if ((f[0] == '<' || f[0] == '=' || f[0] == '@') && f[1] != '\0')
+        f++;
+    if (strcmp(f, "d") != 0 || view->itemsize != (Py_ssize_t)sizeof(double)
+        || (count >= 0 && view->len != count * (Py_ssize_t)sizeof(double))) {
+        PyErr_Format(PyExc_ValueError, "%s: expected a C-contiguous float64 array of %zd values",
+                     name, count);
+        PyBuffer_Release(view);
         return -1;
     }
     return 0;
@@ -102,24 +115,35 @@ PyDoc_STRVAR(sample_doc,
 
 static PyObject *py_sample(PyObject *self, PyObject *args)
 {
-    Py_buffer coef, pts, g, grad;
+    PyObject *coef_obj, *pts_obj, *g_obj, *grad_obj;
+    Py_buffer coef = {0}, pts = {0}, g = {0}, grad = {0};
     Py_ssize_t ps[3], sh[3];
     double spacing[3];
-    if (!PyArg_ParseTuple(args, "y*(nnn)(nnn)(ddd)y*w*w*", &coef, &ps[0], &ps[1], &ps[2],
-                          &sh[0], &sh[1], &sh[2], &spacing[0], &spacing[1], &spacing[2], &pts,
-                          &g, &grad))
+    if (!PyArg_ParseTuple(args, "O(nnn)(nnn)(ddd)OOO", &coef_obj, &ps[0], &ps[1], &ps[2],
+                          &sh[0], &sh[1], &sh[2], &spacing[0], &spacing[1], &spacing[2], &pts_obj,
+                          &g_obj, &grad_obj))
         return NULL;
     PyObject *result = NULL;
+    Py_ssize_t size = 1;
+    for (int d = 0; d < 3; d++) {
+        /* shape >= 1, padded = shape + 4, and the padded size must not overflow */
+        if (sh[d] < 1 || ps[d] != sh[d] + 4 || !(spacing[d] > 0.0) || ps[d] > PY_SSIZE_T_MAX / 8 / size) {
+            PyErr_SetString(PyExc_ValueError,
+                            "padded_shape must be shape + 4 (sizes that fit in memory) and spacing positive");
+            return NULL;
+        }
+        size *= ps[d];
+    }
+    if (get_doubles(coef_obj, &coef, 0, size, "coef") < 0)
+        goto done;
+    if (get_doubles(pts_obj, &pts, 0, -1, "points") < 0)
+        goto done;
     Py_ssize_t n = pts.len / (3 * (Py_ssize_t)sizeof(double));
-    int ok = 1;
-    for (int d = 0; d < 3; d++)
-        ok = ok && sh[d] >= 1 && ps[d] == sh[d] + 4 && spacing[d] > 0.0;
-    if (!ok) {
-        PyErr_SetString(PyExc_ValueError, "padded_shape must be shape + 4 and spacing positive");
+    if (pts.len != 3 * n * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "points: expected (N, 3) float64 values");
         goto done;
     }
-    if (check_buffer(&coef, ps[0] * ps[1] * ps[2], "coef") || check_buffer(&pts, 3 * n, "points")
-        || check_buffer(&g, n, "g_out") || check_buffer(&grad, 3 * n, "grad_out"))
+    if (get_doubles(g_obj, &g, 1, n, "g_out") < 0 || get_doubles(grad_obj, &grad, 1, 3 * n, "grad_out") < 0)
         goto done;
     Py_BEGIN_ALLOW_THREADS
     sample_points((const double *)coef.buf, ps, sh, spacing, (const double *)pts.buf, n,
@@ -128,6 +152,7 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     result = Py_None;
     Py_INCREF(result);
 done:
+    /* A view that was never filled has obj == NULL; PyBuffer_Release ignores it. */
     PyBuffer_Release(&coef);
     PyBuffer_Release(&pts);
     PyBuffer_Release(&g);

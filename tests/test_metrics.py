@@ -39,7 +39,15 @@ PAIRS = [
     ("two blobs", (1.0, 1.0, 2.0),
      lambda: (P.blob(1, spacing=(1, 1, 2), noise=0.0).truth,
               P.blob(2, spacing=(1, 1, 2), noise=0.0).truth)),
+    # They disagree on a thin shell only: `hausdorff` queries k-d trees (the pairs above take
+    # its distance-transform path).
+    ("ball vs shifted", (1.0, 0.8, 1.2), lambda: (_ball(40), np.roll(_ball(40), 2, axis=0))),
 ]
+
+
+def _ball(r: int) -> np.ndarray:
+    g = np.indices((2 * r + 5,) * 3) - (r + 2)
+    return np.einsum("i...,i...->...", g, g) <= r * r
 
 
 @pytest.mark.parametrize("name,spacing,make", PAIRS, ids=[p[0] for p in PAIRS])

@@ -56,6 +56,19 @@ def test_a_normal_near_a_pole_does_not_freeze_the_refinement(kind):
     assert np.all(np.einsum("uvd,uvd->uv", n, r) > 0)  # and no fold near the poles either
 
 
+def test_fold_check_rows_leave_out_the_pole_intervals():
+    from segsnake.pipeline import _Admissible
+    from segsnake.surfaces import CylinderModel, SphereModel
+
+    def rows(model):
+        return _Admissible(model, np.array([1e9, 1e9])).n0.shape[1]
+
+    # three grid rows per knot interval: two intervals left out at each pole, one when M2 = 4
+    # (two would leave nothing to check), none for a cylinder
+    assert [rows(SphereModel.unit(6, m2)) for m2 in (4, 5, 9)] == [6, 3, 15]
+    assert rows(CylinderModel.unit(6, 4)) == 12
+
+
 def test_dark_object_on_bright_background_is_found_with_auto_polarity():
     ph = make_phantom("ball", seed=4, noise=0.2, foreground=20.0, background=100.0)
     res = _segment(ph)
