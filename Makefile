@@ -2,13 +2,14 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow bench clean
+.PHONY: install demo test test-slow bench clean FORCE
 
 $(PY):
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
-$(STAMP): pyproject.toml setup.py segsnake/_sampling.c | $(PY)
+# Reinstalled when the build inputs change, or when the compiled kernel is missing.
+$(STAMP): pyproject.toml setup.py segsnake/_sampling.c $(if $(wildcard segsnake/_sampling*.so),,FORCE) | $(PY)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
@@ -28,3 +29,5 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache segsnake/*.so
+
+FORCE:

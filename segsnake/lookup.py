@@ -52,7 +52,12 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from segsnake import _sampling
+try:
+    from segsnake import _sampling
+except ImportError as exc:  # an install that skipped the build (no compiler), or a stale checkout
+    raise ImportError("segsnake's compiled kernel segsnake/_sampling.c is not built: reinstall "
+                      "with `pip install -e .` (or `make install`), which needs a C compiler "
+                      "and the Python headers") from exc
 from segsnake.parallel import pieces, slabs, spline_filter, thread_map
 
 __all__ = ["Lookup"]
