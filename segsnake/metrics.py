@@ -33,7 +33,6 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from segsnake.errors import InputError
 from segsnake.io import load_volume
@@ -211,7 +210,7 @@ class _Distances:
         self.masks = _cropped(a, b)
         self.sp = np.asarray(spacing, dtype=np.float64)
         self._surfaces: dict[int, NDArray[np.bool_]] = {}
-        self._trees: dict[int, cKDTree] = {}
+        self._trees: dict = {}  # i -> scipy.spatial.cKDTree of mask i's surface
 
     def surface(self, i: int) -> NDArray[np.bool_]:
         if i not in self._surfaces:
@@ -223,6 +222,10 @@ class _Distances:
         if not points.any():
             return np.zeros(0)
         if i not in self._trees:
+            # Imported here: `segment` imports this module on every run, the trees only with
+            # --truth (scipy.spatial costs about 20 ms to import).
+            from scipy.spatial import cKDTree
+
             self._trees[i] = cKDTree(np.argwhere(self.surface(i)) * self.sp)
         return self._trees[i].query(np.argwhere(points) * self.sp, workers=threads())[0]
 

@@ -18,7 +18,6 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, Sequence, TypeVar
 
 import numpy as np
-from scipy import ndimage
 
 from segsnake.errors import ConfigError
 
@@ -136,6 +135,8 @@ def gaussian_filter(array: np.ndarray, sigma: Sequence[float], *, mode: str = "r
     ``gaussian_filter`` call on a ``dtype`` copy (axes with ``sigma`` about 0 are skipped, as
     scipy does). ``copy=False`` filters ``array`` itself when it is a C-ordered ``dtype`` array.
     """
+    from scipy import ndimage  # here: `segsnake batch`'s parent imports this module, never filters
+
     def pass_1d(src: np.ndarray, axis: int, dst: np.ndarray) -> None:
         ndimage.gaussian_filter1d(src, sigma[axis], axis=axis, mode=mode, truncate=truncate,
                                   output=dst)
@@ -150,6 +151,8 @@ def spline_filter(array: np.ndarray, *, dtype=np.float64, out: np.ndarray | None
 
     ``out``: an array (or a view) of ``array``'s shape to write the coefficients into.
     """
+    from scipy import ndimage
+
     def pass_1d(src: np.ndarray, axis: int, dst: np.ndarray) -> None:
         ndimage.spline_filter1d(src, order=3, axis=axis, mode="mirror", output=dst)
 
