@@ -135,6 +135,18 @@ def auto_init(image: NDArray, spacing: Sequence[float],
     return center, np.full(3, r) / sp
 
 
+def _voxel_index(config, p: Sequence[float],
+                index_from_world: Callable[[NDArray], NDArray] | None) -> NDArray:
+    """A position of the ``segment`` options as voxel indices (it is in world mm with
+    ``config.world``, which needs ``index_from_world``)."""
+    q = np.asarray(p, dtype=np.float64)
+    if not config.world:
+        return q
+    if index_from_world is None:
+        raise ConfigError("--world needs an image with an affine")
+    return index_from_world(q[None])[0]
+
+
 def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
                   index_from_world: Callable[[NDArray], NDArray] | None = None,
                   image: NDArray | None = None) -> SplineSurface:
@@ -156,12 +168,7 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
     def point(p: Sequence[float] | None, name: str) -> NDArray | None:
         if p is None:
             return None
-        q = np.asarray(p, dtype=np.float64)
-        if config.world:
-            if index_from_world is None:
-                raise ConfigError("--world needs an image with an affine")
-            q = index_from_world(q[None])[0]
-        mm = q * sp
+        mm = _voxel_index(config, p, index_from_world) * sp
         if np.any(mm < -0.5 * sp) or np.any(mm > ext + 0.5 * sp):
             raise ConfigError(f"{name} {list(map(float, p))} lies outside the volume "
                               f"(shape {tuple(int(n) for n in shape)})")
@@ -295,10 +302,11 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     t0 = time.perf_counter()
     model = initial_model(config, sp, image.shape, index_from_world, image)
     init_s = time.perf_counter() - t0
-    if config.world and config.seed_point is not None and index_from_world is not None:
-        # The seed point is a position like the others: world mm with --world.
-        seed_idx = index_from_world(np.asarray(config.seed_point, dtype=np.float64)[None])[0]
-        config = config.replace(seed_point=[float(x) for x in seed_idx])
+    if config.seed_point is not None:
+        # The seed point is a position like the others: world mm with --world. (It may lie
+        # outside the volume: it picks the edge component nearest to it.)
+        seed = _voxel_index(config, config.seed_point, index_from_world)
+        config = config.replace(seed_point=[float(x) for x in seed])
     frame = flux_frame(model, sp, image.shape)
     if frame is None:
         return _segment(image, sp, config, model, progress, extra_energy, init_s)
