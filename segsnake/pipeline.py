@@ -322,18 +322,17 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     scale = config.scale if config.scale is not None else _default_scale(sp)
     res = _segment(framed, frame.spacing, config.replace(seed_point=seed, scale=scale),
                    frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp),
-                   mask=frame.perm is not None)
+                   mask=False)
     del framed
     res.model = frame.model_out(res.model)
     res.init_model = model
     res.timings["frame_s"] = frame_s
+    # The mask is rasterized on the original grid, whatever the frame.
+    t0 = time.perf_counter()
+    res.mask = _final_mask(res.model, image.shape, sp)
+    res.timings["mask_s"] = time.perf_counter() - t0
     if frame.perm is not None:
-        res.mask = np.ascontiguousarray(np.transpose(res.mask, np.argsort(frame.perm)))
         res.settings["integration_axis"] = int(frame.perm[0])
-    else:  # the mask of the original grid, not the rotated one's
-        t0 = time.perf_counter()
-        res.mask = _final_mask(res.model, image.shape, sp)
-        res.timings["mask_s"] = time.perf_counter() - t0
     res.settings["integration_direction"] = frame.integration_direction
     return res
 
