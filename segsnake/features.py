@@ -619,6 +619,7 @@ def edge_map(
     smooth_mm: float | None = None,
     curvature_correction: bool = True,
     region: np.ndarray | None = None,
+    _derivs: dict | None = None,
 ) -> EdgeMap:
     """Detect surfaces and build the smooth edge map ``f``.
 
@@ -658,6 +659,9 @@ def edge_map(
         curvature, ``c = 1`` for ``edge``, ``7/6`` for ``surface``; for a sheet
         of intrinsic thickness ``t`` the residual bias is about
         ``7/6 t**2 (k1 + k2) / 2``).
+    _derivs : dict, optional
+        Private: the :func:`gaussian_derivatives` of ``data`` at ``scale_mm`` that this mode
+        needs, already computed (a second pass over the same image reuses the first's).
 
     Returns
     -------
@@ -684,7 +688,8 @@ def edge_map(
 
     first = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)]
     second = [(2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1)]
-    derivs = gaussian_derivatives(data, sp, scale_mm, first + (second if mode == "surface" else []))
+    orders = first + (second if mode == "surface" else [])
+    derivs = _derivs if _derivs is not None else gaussian_derivatives(data, sp, scale_mm, orders)
     image_smooth = derivs[(0, 0, 0)]
     gradient = np.stack([derivs[k] for k in first[1:]], axis=-1)
     if mode == "surface":

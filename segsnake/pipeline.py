@@ -419,8 +419,15 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         depth = distance_to(~inside, sp)
         band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale))
         del depth
+        # The sheet's pass already smoothed this image (or its negative) at this scale, and
+        # Gaussian filtering commutes exactly with the sign: its derivatives are reused.
+        sign = np.float32(-1.0 if dark_sheet else 1.0)
+        derivs = {(0, 0, 0): sign * em.image_smooth}
+        derivs.update({o: sign * em.gradient[..., d]
+                       for d, o in enumerate([(1, 0, 0), (0, 1, 0), (0, 0, 1)])})
         face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None, region=band,
-                        smooth_mm=smooth_mm)
+                        smooth_mm=smooth_mm, _derivs=derivs)
+        del derivs
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         # steps that face the sheet
         band &= -pol * _radial_cosine(face.normals, sp, *_center_and_axis(model)) >= 0.5
