@@ -7,37 +7,10 @@ cylinder that segsnake gets, rasterized on the grid as the initial region):
     :func:`segsnake.pipeline.segment_volume` with the options the issue-4 tests use: the default
     ``edge`` feature for filled objects, ``surface`` for the hollow cylinder, ``surface`` with
     ``polarity: dark`` for the T1 brain (its dark CSF sheet) and ``surface`` for the PD brain.
-``skimage MCV``
-    ``skimage.segmentation.morphological_chan_vese`` (3D) on the image rescaled to [0, 1]
-    (1st-99th percentile), ``lambda1 = lambda2 = 1``, ``smoothing`` from :data:`PARAMS`; on the
-    hollow cylinder it starts from skimage's checkerboard level set (the initial cylinder lies in
-    the dark lumen, as dark as the outside: no two-phase start).
-``skimage MGAC``
-    ``morphological_geodesic_active_contour`` on ``inverse_gaussian_gradient(image01, alpha=100,
-    sigma)``, ``balloon=1`` (expand), ``sigma``, ``smoothing`` and ``threshold`` (skimage's
-    ``"auto"``, the 40th percentile of the edge-stopping image, or a number) from :data:`PARAMS`.
-``SimpleITK GAC``
-    ``GeodesicActiveContourLevelSetImageFilter`` (propagation 1, curvature and advection from
-    :data:`PARAMS`) on the speed image ``Sigmoid(GradientMagnitudeRecursiveGaussian(image,
-    sigma))`` with the ITK Software Guide's ``alpha = -(K1 - K2) / 6``, ``beta = (K1 + K2) / 2``:
-    K1 (edge level) is Otsu's threshold of the gradient magnitude, K2 (inside level) its median
-    over the initial region. Initial level set: signed distance of the initial region (mm,
-    negative inside). Voxel spacing is respected (the morphological snakes work in voxel units).
-``Otsu + morphology``
-    Gaussian pre-smoothing (``sigma`` voxels), ``threshold_otsu``, binary opening, the connected
-    component containing the initialization's centre (the largest one if the centre is not in
-    the foreground), binary closing and hole filling (6-connectivity, a 3x3x3 cross as the
-    structuring element).
-
-Iterations (none of these has a documented stopping rule that works on noisy data):
-
-- morphological snakes run until the level set repeats one of its last 8 states (their
-  evolution is deterministic, so it then cycles forever; on noisy data they end in a 2- or
-  4-cycle that flips a few hundred voxels) or a cap of :data:`MORPH_CAP` iterations;
-- the SimpleITK filter runs in chunks of :data:`ITK_CHUNK` iterations, each restarted from the
-  signed distance of the previous result, until the region changes by less than 0.2 % of its
-  volume between chunks (its RMS change stays around 0.05 on noisy data, far above any
-  useful ``MaximumRMSError``) or :data:`ITK_CAP` iterations.
+``skimage MCV``, ``skimage MGAC``, ``SimpleITK GAC``, ``Otsu + morphology``
+    :mod:`peer_methods` (shared with ``bench_real.py``), which also gives their stopping rules;
+    on the hollow cylinder MCV starts from skimage's checkerboard level set (the initial
+    cylinder lies in the dark lumen, as dark as the outside: no two-phase start).
 
 Every region result is post-processed alike: the connected component that contains the
 initialization's centre (the largest if it does not), holes filled.
@@ -71,11 +44,13 @@ import statistics
 import subprocess
 import sys
 import time
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
 from machine import machine_info, report  # noqa: E402 (benchmarks/ is on sys.path)
+from peer_methods import (largest, mcv, mgac, otsu_morphology,  # noqa: E402
+                          region_post, sitk_gac, unit)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -98,9 +73,6 @@ TUNE_GRID: dict[str, dict[str, list]] = {
     "SimpleITK GAC": {"sigma": [1.0, 2.0], "curvature": [0.5, 1.0, 2.0], "advection": [1.0]},
     "Otsu + morphology": {"sigma": [0.0, 1.0]},
 }
-MORPH_CAP = 300
-ITK_CHUNK = 50
-ITK_CAP = 400
 
 
 # ------------------------------------------------------------------------------------------
@@ -140,58 +112,6 @@ FAMILIES = ("ball", "ellipsoid", "blob", "cylinder", "brain")
 # ------------------------------------------------------------------------------------------
 # Methods
 # ------------------------------------------------------------------------------------------
-
-
-class _Cycle(Exception):
-    """Raised from the morphological snakes' callback to stop them once they cycle."""
-
-
-def _run_morph(fn: Callable, *args: Any, **kwargs: Any) -> tuple[np.ndarray, int, str]:
-    """Run a morphological snake until its level set repeats a recent state, or MORPH_CAP."""
-    recent: list[bytes] = []
-    state = {"n": 0, "u": None}
-
-    def callback(u: np.ndarray) -> None:
-        state["n"] += 1
-        key = np.packbits(u.astype(bool)).tobytes()
-        if key in recent:
-            state["u"] = u.astype(bool)
-            raise _Cycle
-        recent.append(key)
-        del recent[:-8]
-
-    try:
-        u = fn(*args, num_iter=MORPH_CAP, iter_callback=callback, **kwargs)
-        return u.astype(bool), state["n"], "cap"
-    except _Cycle:
-        return state["u"], state["n"], "cycle"
-
-
-def _unit(image: np.ndarray) -> np.ndarray:
-    lo, hi = np.percentile(image, [1, 99])
-    return np.clip((image - lo) / max(hi - lo, 1e-12), 0.0, 1.0).astype(np.float32)
-
-
-def _component(mask: np.ndarray, center: tuple[int, ...]) -> np.ndarray:
-    """The connected component containing ``center`` (the largest one if it is background)."""
-    lab, n = ndimage.label(mask)
-    if n == 0:
-        return mask
-    k = lab[center]
-    if k == 0:
-        k = int(np.argmax(np.bincount(lab.ravel())[1:])) + 1
-    return lab == k
-
-
-def _largest(mask: np.ndarray) -> np.ndarray:
-    lab, n = ndimage.label(mask)
-    if n == 0:
-        return mask
-    return lab == int(np.argmax(np.bincount(lab.ravel())[1:])) + 1
-
-
-def _region_post(mask: np.ndarray, center: tuple[int, ...]) -> np.ndarray:
-    return ndimage.binary_fill_holes(_component(mask, center))
 
 
 def _wall_to_region(wall: np.ndarray, axis: int, spacing) -> np.ndarray:
@@ -237,80 +157,35 @@ def run_method(method: str, vol: dict, ph, init: np.ndarray, params: dict) -> tu
         return res.mask, notes
 
     if method == "skimage MCV":
-        from skimage.segmentation import checkerboard_level_set, morphological_chan_vese
+        from skimage.segmentation import checkerboard_level_set
 
-        u01 = _unit(img)
         # A two-phase model needs a start whose two phases differ: the initial cylinder lies
         # in the dark lumen, as dark as the outside, so the sheet starts from skimage's
         # checkerboard (5 voxel squares) instead.
         start = checkerboard_level_set(img.shape, 5) if sheet else init
-        u, n, stop = _run_morph(morphological_chan_vese, u01, init_level_set=start,
-                                smoothing=params["smoothing"], lambda1=1, lambda2=1)
-        notes.update(iterations=n, stop=stop)
+        u, notes = mcv(img, start, params)
         if sheet:
             # The bright phase is the wall (the initial region, in the lumen, is the dark one).
+            u01 = unit(img)
             wall = u if u01[u].mean() > u01[~u].mean() else ~u
-            return _wall_to_region(_largest(wall), axis, sp), notes
-        return _region_post(u, center), notes
+            return _wall_to_region(largest(wall), axis, sp), notes
+        return region_post(u, center), notes
 
     if method == "skimage MGAC":
-        from skimage.segmentation import (inverse_gaussian_gradient,
-                                          morphological_geodesic_active_contour)
-
-        g = inverse_gaussian_gradient(_unit(img), alpha=100.0, sigma=params["sigma"])
-        u, n, stop = _run_morph(morphological_geodesic_active_contour, g, init_level_set=init,
-                                smoothing=params["smoothing"], threshold=params["threshold"],
-                                balloon=1)
-        notes.update(iterations=n, stop=stop)
-        return _region_post(u, center), notes
+        u, notes = mgac(img, init, params)
+        return region_post(u, center), notes
 
     if method == "SimpleITK GAC":
-        import SimpleITK as sitk
-        from skimage.filters import threshold_otsu
-
-        # SimpleITK's axes are the numpy axes reversed; so is the spacing.
-        im = sitk.GetImageFromArray(img)
-        im.SetSpacing(sp[::-1])
-        gm = sitk.GradientMagnitudeRecursiveGaussian(im, float(params["sigma"]))
-        garr = sitk.GetArrayViewFromImage(gm)
-        k1 = float(threshold_otsu(garr))
-        k2 = float(np.median(garr[init]))
-        speed = sitk.Sigmoid(gm, -(k1 - k2) / 6.0, (k1 + k2) / 2.0, 1.0, 0.0)
-        notes["K1, K2"] = [round(k1, 3), round(k2, 3)]
-        mask, done, stop = init, 0, "cap"
-        while done < ITK_CAP:
-            m = sitk.GetImageFromArray(mask.astype(np.uint8))
-            m.CopyInformation(im)
-            ls = sitk.SignedMaurerDistanceMap(m, insideIsPositive=False, squaredDistance=False,
-                                              useImageSpacing=True)
-            f = sitk.GeodesicActiveContourLevelSetImageFilter()
-            f.SetPropagationScaling(1.0)
-            f.SetCurvatureScaling(float(params["curvature"]))
-            f.SetAdvectionScaling(float(params["advection"]))
-            f.SetMaximumRMSError(0.01)
-            f.SetNumberOfIterations(ITK_CHUNK)
-            new = sitk.GetArrayFromImage(f.Execute(ls, speed)) < 0
-            done += int(f.GetElapsedIterations())
-            change = np.count_nonzero(new ^ mask) / max(np.count_nonzero(new), 1)
-            mask = new
-            if change < 0.002 or f.GetElapsedIterations() < ITK_CHUNK:
-                stop = "converged"
-                break
-        notes.update(iterations=done, stop=stop)
-        return _region_post(mask, center), notes
+        mask, notes = sitk_gac(img, sp, init, params)
+        return region_post(mask, center), notes
 
     if method == "Otsu + morphology":
-        from skimage.filters import threshold_otsu
-
-        sm = ndimage.gaussian_filter(img, params["sigma"]) if params["sigma"] > 0 else img
-        fg = sm > threshold_otsu(sm)
-        cross = ndimage.generate_binary_structure(3, 1)
         if sheet:
-            return _wall_to_region(_largest(fg), axis, sp), notes
-        fg = ndimage.binary_opening(fg, cross)
-        fg = _component(fg, center)
-        fg = ndimage.binary_closing(fg, cross, border_value=0)
-        return ndimage.binary_fill_holes(fg), notes
+            from skimage.filters import threshold_otsu
+
+            sm = ndimage.gaussian_filter(img, params["sigma"]) if params["sigma"] > 0 else img
+            return _wall_to_region(largest(sm > threshold_otsu(sm)), axis, sp), notes
+        return otsu_morphology(img, center, params), notes
 
     raise ValueError(f"unknown method {method!r}")
 
