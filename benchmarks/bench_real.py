@@ -1,0 +1,484 @@
+"""Benchmark: segsnake and the tools users run, on public scans, from the same clicks.
+
+The cases (public scans, references and clicks; ``benchmarks/real/README.md``) are built by
+``benchmarks/real/fetch.py`` (``make bench-real-data``). Every tool starts from the same
+initialization: the case's click (a sphere at the reference's deepest point with half its depth
+as radius; a tube's axis shortened by 15 % at each end with half its radius) and ``--clicks N``
+seeded perturbations of it (:func:`segsnake.perturb.perturb_init`: centre moved up to half the
+radius, radius x0.6-1.4, axis tilted up to 10 degrees; seeds 1..N).
+
+Tools (settings in :data:`PEER_PARAMS`, the reasons in the README):
+
+``segsnake``
+    the ``segsnake segment`` command with default options and the click (``--center/--radii``
+    or ``--shape cylinder --axis-start/--axis-end/--radius``), on the whole image.
+``segsnake, no click``
+    the brain only: ``segsnake segment`` with no initialization at all.
+``segsnake, perfect edges``
+    the ceiling of model and optimizer: the same command on the reference mask itself as the
+    image, with the click; the full run tries the control grids in :data:`CEILING_M` and
+    reports the best with its M.
+``BET``, ``ROBEX``
+    the brain only, whole-head tools that take no click: ``benchmarks/real/brain_tools.py``
+    runs each in a virtual environment of its own, with its default settings.
+``skimage MCV``, ``skimage MGAC``, ``SimpleITK GAC``, ``SimpleITK confidence connected``
+    :mod:`peer_methods` from the click's rasterized sphere or cylinder, in an ITK-SNAP-style
+    region of interest: the reference's bounding box grown by :data:`ROI_MARGIN_MM` on each
+    side (segsnake gets the whole image). Their parameters were tuned with ``--tune`` on the
+    ``tuning`` case (Colin27's left thalamus, which no table reports) and then frozen.
+
+Every tool runs as its own process: wall time (whole command: start-up, loading, writing) and
+peak resident memory are that process's (``os.wait4``). Dice, HD95 and ASSD are
+:func:`segsnake.metrics.evaluate_masks` against the reference on the case's grid.
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_real.py                 # everything (make bench-real)
+    .venv/bin/python benchmarks/bench_real.py --quick         # segsnake + ceiling, click only
+    .venv/bin/python benchmarks/bench_real.py --cases lung2-tumour --tools segsnake
+    .venv/bin/python benchmarks/bench_real.py --tune          # the peers' parameter sweep
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from typing import Any
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+for _p in (os.path.join(HERE, "real"), HERE, ROOT):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
+
+from machine import machine_info, report  # noqa: E402
+
+SEGSNAKE = "segsnake"
+NO_CLICK = "segsnake, no click"
+CEILING = "segsnake, perfect edges"
+BRAIN_TOOLS = ("BET", "ROBEX")
+PEERS = ("skimage MCV", "skimage MGAC", "SimpleITK GAC", "SimpleITK confidence connected")
+TOOLS = (SEGSNAKE, NO_CLICK, CEILING, *BRAIN_TOOLS, *PEERS)
+
+#: Peer parameters, chosen by ``--tune`` on the tuning case (mean Dice over its click and
+#: perturbed clicks) and frozen; the sweep's numbers are in docs/benchmarks.md.
+PEER_PARAMS: dict[str, dict[str, Any]] = {
+    "skimage MCV": {"smoothing": 1},
+    "skimage MGAC": {"sigma": 1.0, "smoothing": 1, "threshold": "auto"},
+    "SimpleITK GAC": {"sigma": 1.0, "curvature": 1.0, "advection": 1.0},
+    "SimpleITK confidence connected": {"multiplier": 2.5, "iterations": 4},
+}
+TUNE_GRID: dict[str, dict[str, list]] = {
+    "skimage MCV": {"smoothing": [1, 2, 3]},
+    "skimage MGAC": {"sigma": [1.0, 2.0], "smoothing": [1, 2], "threshold": ["auto", 0.5]},
+    "SimpleITK GAC": {"sigma": [1.0, 2.0], "curvature": [0.5, 1.0, 2.0], "advection": [1.0]},
+    "SimpleITK confidence connected": {"multiplier": [1.5, 2.0, 2.5, 3.0], "iterations": [1, 4]},
+}
+#: The peers' region of interest: the reference's bounding box grown by this much (mm), as an
+#: ITK-SNAP user draws a box around the structure before running its snake.
+ROI_MARGIN_MM = 20.0
+#: Control grids (m1, m2) the perfect-edge ceiling tries (the first is segsnake's default).
+CEILING_M = {"sphere": [(9, 9), (13, 13), (17, 17)], "cylinder": [(8, 4), (12, 6), (16, 8)]}
+#: Seconds before a tool's process is stopped and its run recorded as failed.
+TIMEOUT_S = 1800.0
+METRICS = ("dice", "jaccard", "hausdorff95_mm", "assd_mm")
+
+
+# ------------------------------------------------------------------------------------------
+# Clicks and files
+# ------------------------------------------------------------------------------------------
+
+
+def _spacing(path: str) -> np.ndarray:
+    import nibabel as nib
+
+    return np.asarray(nib.load(path).header.get_zooms()[:3], dtype=float)
+
+
+def _load(path: str) -> np.ndarray:
+    import nibabel as nib
+
+    return np.asanyarray(nib.load(path).dataobj)
+
+
+def clicks(case: dict, n: int) -> list[tuple[str, dict]]:
+    """The case's click and ``n`` seeded perturbations of it (seeds 1..n)."""
+    from segsnake.perturb import perturb_init
+
+    sp = _spacing(case["truth"])
+    return [("click", case["init"])] + [(f"perturbed {k}", perturb_init(case["init"], sp, seed=k))
+                                        for k in range(1, n + 1)]
+
+
+def init_args(init: dict | None) -> list[str]:
+    """``segsnake segment`` flags for an initialization (none: the image decides)."""
+    if init is None:
+        return []
+    if init["shape"] == "sphere":
+        return ["--center", *map(str, init["center"]), "--radii", *map(str, init["radii"])]
+    return ["--shape", "cylinder", "--axis-start", *map(str, init["axis_start"]),
+            "--axis-end", *map(str, init["axis_end"]), "--radius", str(init["radius"])]
+
+
+def init_mask(init: dict, shape, spacing) -> np.ndarray:
+    """The initialization rasterized on the grid (what the region-based peers start from)."""
+    from segsnake.config import SegmentConfig
+    from segsnake.pipeline import initial_model
+    from segsnake.rasterize import rasterize
+
+    model = initial_model(SegmentConfig.from_mapping(dict(init)), spacing, shape)
+    return rasterize(model, shape, spacing)
+
+
+def roi(truth: np.ndarray, spacing) -> tuple[slice, ...]:
+    """The reference's bounding box grown by :data:`ROI_MARGIN_MM`, clipped to the grid."""
+    idx = np.argwhere(truth)
+    pad = np.ceil(ROI_MARGIN_MM / np.asarray(spacing)).astype(int)
+    lo = np.maximum(idx.min(axis=0) - pad, 0)
+    hi = np.minimum(idx.max(axis=0) + pad + 1, truth.shape)
+    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+
+
+# ------------------------------------------------------------------------------------------
+# Running the tools
+# ------------------------------------------------------------------------------------------
+
+
+def _segsnake_exe() -> str:
+    exe = os.path.join(os.path.dirname(sys.executable), "segsnake")
+    return exe if os.path.exists(exe) else shutil.which("segsnake") or "segsnake"
+
+
+def run_segsnake(image: str, init: dict | None, tmp: str, extra: list[str] | None = None) -> dict:
+    """``segsnake segment`` on ``image``: measured run, exit code, warnings, mask path."""
+    from brain_tools import run_measured
+
+    out = os.path.join(tmp, "seg")
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [_segsnake_exe(), "segment", image, "--out", out, "--quiet", "--json", "--overwrite",
+           *init_args(init), *(extra or [])]
+    res = run_measured(cmd, timeout_s=TIMEOUT_S)
+    res["warnings"] = [ln for ln in res.get("stderr_tail", "").splitlines() if ": warning: " in ln]
+    mask = os.path.join(out, "mask.nii.gz")
+    res["mask"] = mask if res["returncode"] == 0 and os.path.exists(mask) else None
+    return res
+
+
+def child_peer(payload: dict) -> None:
+    """In a child process: one peer on the ROI of one case from one initialization."""
+    import peer_methods as pm
+
+    img = _load(payload["image"]).astype(np.float32)
+    truth = _load(payload["truth"]) != 0
+    sp = _spacing(payload["truth"])
+    box = roi(truth, sp)
+    start = init_mask(payload["init"], img.shape, sp)[box]
+    if not start.any():
+        raise SystemExit("the initialization does not meet the region of interest")
+    sub = np.ascontiguousarray(img[box])
+    method, params = payload["method"], payload["params"]
+    if method == "skimage MCV":
+        u, notes = pm.mcv(sub, start, params)
+    elif method == "skimage MGAC":
+        u, notes = pm.mgac(sub, start, params)
+    elif method == "SimpleITK GAC":
+        u, notes = pm.sitk_gac(sub, sp, start, params)
+    elif method == "SimpleITK confidence connected":
+        u, notes = pm.confidence_connected(sub, start, params)
+    else:
+        raise SystemExit(f"unknown peer {method!r}")
+    full = np.zeros(img.shape, bool)
+    full[box] = pm.region_post(u, pm.init_center(start))
+    np.save(payload["out"], np.packbits(full))
+    with open(payload["out"] + ".json", "w") as fh:
+        json.dump(notes, fh)
+
+
+def run_peer(method: str, case: dict, init: dict, params: dict, tmp: str) -> dict:
+    """One peer in its own process; returns the measured run and the mask (or None)."""
+    from brain_tools import run_measured
+
+    out = os.path.join(tmp, "peer.npy")
+    for p in (out, out + ".json"):
+        if os.path.exists(p):
+            os.remove(p)
+    payload = {"method": method, "params": params, "init": init, "image": case["image"],
+               "truth": case["truth"], "out": out}
+    res = run_measured([sys.executable, os.path.abspath(__file__), "--child", json.dumps(payload)],
+                       timeout_s=TIMEOUT_S)
+    if res["returncode"] == 0 and os.path.exists(out):
+        res["mask_array"] = np.load(out)
+        with open(out + ".json") as fh:
+            res["notes"] = json.load(fh)
+    return res
+
+
+def _score(res: dict, truth: np.ndarray, sp, mask: np.ndarray | None) -> dict:
+    """The row of one run: metrics (or the error), time, memory, exit code, warnings."""
+    from segsnake.metrics import evaluate_masks
+
+    row = {k: res.get(k) for k in ("wall_s", "peak_rss_mb", "returncode", "warnings", "notes")}
+    if mask is None:
+        tail = (res.get("error") or res.get("stderr_tail") or "").strip().splitlines()[-1:]
+        row["error"] = tail[0] if tail else f"exit {res.get('returncode')}"
+        return row
+    m = evaluate_masks(mask, truth, sp)
+    row.update({k: m[k] for k in METRICS})
+    return row
+
+
+def _mask_from(res: dict, shape) -> np.ndarray | None:
+    if res.get("mask"):
+        return _load(res["mask"]) != 0
+    if res.get("mask_array") is not None:
+        return np.unpackbits(res["mask_array"])[: int(np.prod(shape))].reshape(shape).astype(bool)
+    return None
+
+
+def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: str | None,
+             params: dict) -> dict:
+    """Every tool on one case, from the click and its perturbations."""
+    truth = _load(case["truth"]) != 0
+    sp = _spacing(case["truth"])
+    out: dict[str, Any] = {"case": case["name"], "structure": case["structure"],
+                           "shape": list(truth.shape), "spacing": sp.tolist(),
+                           "init": case["init"], "runs": []}
+    starts = clicks(case, 0 if quick else n_clicks)
+    tmp = tempfile.mkdtemp(prefix="segsnake-bench-real-")
+    seg_click_mask = None
+    try:
+        def record(tool: str, label: str, init: dict | None, res: dict, **extra) -> np.ndarray | None:
+            mask = _mask_from(res, truth.shape)
+            row = {"tool": tool, "start": label, "init": init, **extra, **_score(res, truth, sp, mask)}
+            out["runs"].append(row)
+            brief = f"{row['dice']:.3f}" if "dice" in row else f"failed ({row['error'][:60]})"
+            print(f"[bench_real] {case['name']}: {tool} ({label}): {brief}, "
+                  f"{row['wall_s']:.1f} s, {row['peak_rss_mb']:.0f} MB", file=sys.stderr, flush=True)
+            return mask
+
+        for label, init in starts:
+            if SEGSNAKE in tools:
+                mask = record(SEGSNAKE, label, init, run_segsnake(case["image"], init, tmp))
+                if label == "click":
+                    seg_click_mask = mask
+            for method in (m for m in PEERS if m in tools):
+                record(method, label, init, run_peer(method, case, init, params[method], tmp))
+        if NO_CLICK in tools and case["name"] == "colin27-brain":
+            record(NO_CLICK, "none", None, run_segsnake(case["image"], None, tmp))
+        if CEILING in tools:
+            perfect = os.path.join(tmp, "perfect.nii.gz")
+            _write_like(case["truth"], truth.astype(np.float32), perfect)
+            grids = CEILING_M[case["init"]["shape"]][: 1 if quick else None]
+            for m1, m2 in grids:
+                record(CEILING, "click", case["init"],
+                       run_segsnake(perfect, case["init"], tmp, ["--m1", str(m1), "--m2", str(m2)]),
+                       m=[m1, m2])
+        for tool in (t for t in BRAIN_TOOLS if t in tools):
+            if case["name"] != "colin27-brain":
+                continue
+            import brain_tools
+
+            name = next(k for k in brain_tools.TOOLS if k.startswith(tool))
+            mask_path = os.path.join(tmp, f"{tool}.nii.gz")
+            res = brain_tools.run_tool(name, case["image"], mask_path, _cache())
+            res["mask"] = mask_path if res["returncode"] == 0 and os.path.exists(mask_path) else None
+            record(tool, "none", None, res)
+        if qc_dir and seg_click_mask is not None:
+            os.makedirs(qc_dir, exist_ok=True)
+            qc_picture(os.path.join(qc_dir, f"{case['name']}.png"), case, truth, sp, seg_click_mask)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def _cache() -> str:
+    from fetch import cache_dir
+
+    return cache_dir()
+
+
+def _write_like(reference: str, data: np.ndarray, path: str) -> None:
+    import nibabel as nib
+
+    ref = nib.load(reference)
+    nib.save(nib.Nifti1Image(data, ref.affine, ref.header), path)
+
+
+def qc_picture(path: str, case: dict, truth: np.ndarray, sp, seg: np.ndarray) -> None:
+    """Three orthogonal slices through the click: reference (green), segsnake (red), click
+    (yellow, dashed), drawn with the physical aspect ratio."""
+    from matplotlib.figure import Figure
+
+    image = _load(case["image"]).astype(np.float32)
+    click = init_mask(case["init"], truth.shape, sp)
+    centre = np.round(np.argwhere(click).mean(axis=0)).astype(int)
+    fig = Figure(figsize=(12, 4.2), dpi=72)
+    names = ("i", "j", "k")
+    for panel, axis in enumerate((2, 1, 0)):
+        ax = fig.add_subplot(1, 3, panel + 1)
+        sl = [slice(None)] * 3
+        sl[axis] = int(centre[axis])
+        sl = tuple(sl)
+        other = [d for d in range(3) if d != axis]
+        extent = (0, truth.shape[other[0]] * sp[other[0]], 0, truth.shape[other[1]] * sp[other[1]])
+        lo, hi = np.percentile(image[sl], [1, 99.5])
+        ax.imshow(image[sl].T, cmap="gray", origin="lower", vmin=lo, vmax=hi, extent=extent,
+                  interpolation="nearest")
+        xs = (np.arange(truth.shape[other[0]]) + 0.5) * sp[other[0]]
+        ys = (np.arange(truth.shape[other[1]]) + 0.5) * sp[other[1]]
+        for mask, colour, style in ((truth, "lime", "solid"), (seg, "red", "solid"),
+                                    (click, "yellow", "dashed")):
+            if mask[sl].any():
+                ax.contour(xs, ys, mask[sl].T.astype(float), [0.5], colors=colour,
+                           linestyles=style, linewidths=1.0)
+        ax.set_title(f"{names[axis]} = {centre[axis]}", fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.suptitle(f"{case['name']}: reference (green), segsnake from the click (red), "
+                 f"click (yellow)", fontsize=10)
+    fig.subplots_adjust(left=0.04, right=0.99, bottom=0.07, top=0.88, wspace=0.2)
+    fig.savefig(path, format="png")
+
+
+# ------------------------------------------------------------------------------------------
+# Report
+# ------------------------------------------------------------------------------------------
+
+
+def _fmt(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def summarize(runs: list[dict]) -> dict:
+    """Click row and spread over perturbed clicks of one tool on one case."""
+    click = next((r for r in runs if r["start"] in ("click", "none")), runs[0])
+    pert = [r.get("dice", 0.0) for r in runs if r["start"].startswith("perturbed")]
+    return {"click": click, "perturbed": pert}
+
+
+def markdown(info: dict) -> str:
+    m = info["machine"]
+    lines = [f"Machine: {m['nproc']} cores, {m['cpu']}, Python {m['python']}, numpy {m['numpy']}, "
+             f"scipy {m['scipy']}, scikit-image {m.get('skimage')}, SimpleITK {m.get('SimpleITK')}; "
+             f"segsnake at {m.get('commit', '?')}"
+             + (f" with local changes in {', '.join(m['segsnake_modified'])}"
+                if m.get("segsnake_modified") else "") + f"; {info['date']}.",
+             f"Command: `{info['command']}` (total {info['total_s'] / 60:.1f} min).", "",
+             "| case | tool | Dice (click) | perturbed clicks: min / median / max Dice (n) | "
+             "HD95 (mm) | ASSD (mm) | time (s) | peak (MB) | exit, warnings |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for case in info["cases"]:
+        tools = list(dict.fromkeys(r["tool"] for r in case["runs"]))
+        for tool in tools:
+            runs = [r for r in case["runs"] if r["tool"] == tool]
+            if tool == CEILING:
+                best = max(runs, key=lambda r: r.get("dice", -1.0))
+                tried = ", ".join("{}x{}: {}".format(*r["m"], _fmt(r.get("dice"), ".3f")) for r in runs)
+                label = "{} (M {}x{}{})".format(tool, *best["m"], f"; {tried}" if len(runs) > 1 else "")
+                runs = [best]
+            else:
+                label = tool
+            s = summarize(runs)
+            c = s["click"]
+            pert = s["perturbed"]
+            spread = (f"{min(pert):.3f} / {statistics.median(pert):.3f} / {max(pert):.3f} "
+                      f"({len(pert)})" if pert else "")
+            dice = _fmt(c.get("dice"), ".3f") if "error" not in c else f"failed: {c['error'][:70]}"
+            flags = f"{c.get('returncode')}, " + (f"{len(c['warnings'])} warning(s)"
+                                                  if c.get("warnings") else "none")
+            lines.append(f"| {case['case']} | {label} | {dice} | {spread} | "
+                         f"{_fmt(c.get('hausdorff95_mm'), '.1f')} | {_fmt(c.get('assd_mm'), '.2f')} | "
+                         f"{_fmt(c.get('wall_s'), '.1f')} | {_fmt(c.get('peak_rss_mb'), '.0f')} | "
+                         f"{flags if tool in (SEGSNAKE, NO_CLICK, CEILING) else ''} |")
+    return "\n".join(lines)
+
+
+def tune(cases: list[dict], n_clicks: int) -> int:
+    """Grid search of each peer's parameters on the tuning case(s): mean Dice over the clicks."""
+    from segsnake.metrics import evaluate_masks
+
+    tuning = [c for c in cases if c["role"] == "tuning"]
+    for method, grid in TUNE_GRID.items():
+        keys = list(grid)
+        scores = {}
+        for values in itertools.product(*(grid[k] for k in keys)):
+            p = dict(zip(keys, values))
+            dice = []
+            for case in tuning:
+                truth = _load(case["truth"]) != 0
+                sp = _spacing(case["truth"])
+                tmp = tempfile.mkdtemp(prefix="segsnake-tune-")
+                try:
+                    for _, init in clicks(case, n_clicks):
+                        mask = _mask_from(run_peer(method, case, init, p, tmp), truth.shape)
+                        dice.append(evaluate_masks(mask, truth, sp)["dice"] if mask is not None else 0.0)
+                finally:
+                    shutil.rmtree(tmp, ignore_errors=True)
+            scores[json.dumps(p)] = statistics.mean(dice)
+            print(f"{method} {p}: mean Dice {scores[json.dumps(p)]:.4f} "
+                  f"{[round(d, 3) for d in dice]}", flush=True)
+        print(f"-> {method}: {max(scores, key=scores.get)}", flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from fetch import load_cases
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="the click only, segsnake and its perfect-edge ceiling (default M)")
+    ap.add_argument("--cases", nargs="+", help="case names (default: every benchmark case)")
+    ap.add_argument("--tools", nargs="+", choices=TOOLS, help="tools (default: all)")
+    ap.add_argument("--clicks", type=int, default=5, help="perturbed clicks per case (default 5)")
+    ap.add_argument("--qc", metavar="DIR", default=None,
+                    help="write a QC montage per case here (default: docs/real for a full run)")
+    ap.add_argument("--json", metavar="PATH", help="also write the raw numbers here")
+    ap.add_argument("--tune", action="store_true", help="the peers' parameter sweep")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+
+    if args.child:
+        child_peer(json.loads(args.child))
+        return 0
+    try:
+        cases = load_cases()
+    except FileNotFoundError as exc:
+        print(f"bench_real: {exc}", file=sys.stderr)
+        return 3
+    if args.tune:
+        return tune(cases, args.clicks)
+    if args.cases:
+        unknown = set(args.cases) - {c["name"] for c in cases}
+        if unknown:
+            print(f"bench_real: unknown case(s): {', '.join(sorted(unknown))}", file=sys.stderr)
+            return 2
+        cases = [c for c in cases if c["name"] in args.cases]
+    else:
+        cases = [c for c in cases if c["role"] == "benchmark"]
+    tools = args.tools or ([SEGSNAKE, CEILING] if args.quick else list(TOOLS))
+    qc = args.qc if args.qc is not None else (None if args.quick or args.cases
+                                              else os.path.join(ROOT, "docs", "real"))
+    t0 = time.perf_counter()
+    exe = sys.executable
+    info: dict[str, Any] = {
+        "machine": machine_info(), "date": time.strftime("%Y-%m-%d"), "params": PEER_PARAMS,
+        "command": " ".join([os.path.relpath(exe, ROOT) if exe.startswith(ROOT) else exe,
+                             os.path.relpath(__file__, ROOT), *(argv if argv is not None
+                                                                else sys.argv[1:])]),
+        "cases": []}
+    for case in cases:
+        info["cases"].append(run_case(case, tools, args.clicks, args.quick, qc, PEER_PARAMS))
+    info["total_s"] = time.perf_counter() - t0
+    return report(info, args.json, markdown)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
