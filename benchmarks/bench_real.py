@@ -73,13 +73,13 @@ TOOLS = (SEGSNAKE, NO_CLICK, CEILING, *BRAIN_TOOLS, *PEERS)
 #: perturbed clicks) and frozen; the sweep's numbers are in docs/benchmarks.md.
 PEER_PARAMS: dict[str, dict[str, Any]] = {
     "skimage MCV": {"smoothing": 1},
-    "skimage MGAC": {"sigma": 1.0, "smoothing": 1, "threshold": "auto"},
+    "skimage MGAC": {"sigma": 1.0, "smoothing": 1, "threshold": 0.5},
     "SimpleITK GAC": {"sigma": 1.0, "curvature": 1.0, "advection": 1.0},
-    "SimpleITK confidence connected": {"multiplier": 2.5, "iterations": 4},
+    "SimpleITK confidence connected": {"multiplier": 1.5, "iterations": 4},
 }
 TUNE_GRID: dict[str, dict[str, list]] = {
     "skimage MCV": {"smoothing": [1, 2, 3]},
-    "skimage MGAC": {"sigma": [1.0, 2.0], "smoothing": [1, 2], "threshold": ["auto", 0.5]},
+    "skimage MGAC": {"sigma": [1.0, 2.0], "smoothing": [1], "threshold": ["auto", 0.5]},
     "SimpleITK GAC": {"sigma": [1.0, 2.0], "curvature": [0.5, 1.0, 2.0], "advection": [1.0]},
     "SimpleITK confidence connected": {"multiplier": [1.5, 2.0, 2.5, 3.0], "iterations": [1, 4]},
 }
@@ -270,7 +270,9 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
                 mask = record(SEGSNAKE, label, init, run_segsnake(case["image"], init, tmp))
                 if label == "click":
                     seg_click_mask = mask
-            for method in (m for m in PEERS if m in tools):
+            # On the brain, users run BET and ROBEX; a generic region grower's region of
+            # interest would be the whole 7 M-voxel head (15+ min a run for the morphological ones).
+            for method in (m for m in PEERS if m in tools and case["name"] != "colin27-brain"):
                 record(method, label, init, run_peer(method, case, init, params[method], tmp))
         if NO_CLICK in tools and case["name"] == "colin27-brain":
             record(NO_CLICK, "none", None, run_segsnake(case["image"], None, tmp))
@@ -401,12 +403,13 @@ def markdown(info: dict) -> str:
     return "\n".join(lines)
 
 
-def tune(cases: list[dict], n_clicks: int) -> int:
+def tune(cases: list[dict], n_clicks: int, methods: list[str]) -> int:
     """Grid search of each peer's parameters on the tuning case(s): mean Dice over the clicks."""
     from segsnake.metrics import evaluate_masks
 
     tuning = [c for c in cases if c["role"] == "tuning"]
-    for method, grid in TUNE_GRID.items():
+    for method in methods:
+        grid = TUNE_GRID[method]
         keys = list(grid)
         scores = {}
         for values in itertools.product(*(grid[k] for k in keys)):
@@ -442,8 +445,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="write a QC montage per case here (default: docs/real for a full run)")
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers here")
     ap.add_argument("--tune", action="store_true", help="the peers' parameter sweep")
+    ap.add_argument("--report", nargs="+", metavar="JSON",
+                    help="print the table of earlier runs' --json files (merged) and exit")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+
+    if args.report:
+        print(markdown(merge(args.report)))
+        return 0
 
     if args.child:
         child_peer(json.loads(args.child))
@@ -454,7 +463,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_real: {exc}", file=sys.stderr)
         return 3
     if args.tune:
-        return tune(cases, args.clicks)
+        return tune(cases, args.clicks, [t for t in (args.tools or PEERS) if t in PEERS])
     if args.cases:
         unknown = set(args.cases) - {c["name"] for c in cases}
         if unknown:
@@ -476,8 +485,29 @@ def main(argv: list[str] | None = None) -> int:
         "cases": []}
     for case in cases:
         info["cases"].append(run_case(case, tools, args.clicks, args.quick, qc, PEER_PARAMS))
-    info["total_s"] = time.perf_counter() - t0
+        info["total_s"] = time.perf_counter() - t0
+        if args.json:  # after every case: a long run stopped half-way keeps what it measured
+            with open(args.json, "w") as fh:
+                json.dump(info, fh, indent=1)
     return report(info, args.json, markdown)
+
+
+def merge(paths: list[str]) -> dict:
+    """Runs of several ``--json`` files (the same cases, other tools) as one report."""
+    infos = []
+    for path in paths:
+        with open(path) as fh:
+            infos.append(json.load(fh))
+    merged = dict(infos[0], cases=[], total_s=max(i["total_s"] for i in infos),
+                  command=" + ".join(f"`{i['command']}`" for i in infos).strip("`"))
+    for info in infos:
+        for case in info["cases"]:
+            into = next((c for c in merged["cases"] if c["case"] == case["case"]), None)
+            if into is None:
+                merged["cases"].append(dict(case, runs=list(case["runs"])))
+            else:
+                into["runs"].extend(case["runs"])
+    return merged
 
 
 if __name__ == "__main__":

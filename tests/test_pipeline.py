@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import perturbed_init
 
 from segsnake.config import SegmentConfig
 from segsnake.errors import SegmentationError
@@ -10,8 +11,11 @@ from segsnake.phantoms import make_phantom
 from segsnake.pipeline import _center_and_axis, segment_volume
 
 
-def _segment(ph, **options):
-    config = SegmentConfig.from_mapping({**ph.init, **options})
+def _segment(ph, seed, **options):
+    """Segment the phantom from its suggested start perturbed with ``seed`` (issue 14); with
+    ``seed=None`` from the suggested start itself (regression tests of a measured case only)."""
+    init = ph.init if seed is None else perturbed_init(ph, seed)
+    config = SegmentConfig.from_mapping({**init, **options})
     return segment_volume(ph.image, ph.spacing, config)
 
 
@@ -25,17 +29,17 @@ def _mid_surface_distance(model, params):
     return float(np.mean(np.abs(np.linalg.norm(radial, axis=1) - g["mid_radius_mm"])))
 
 
-@pytest.mark.parametrize("kind,options", [
-    ("ball", {"noise": 0.3}),
-    ("ellipsoid", {"noise": 0.1}),
-    ("blob", {"noise": 0.2}),
-    ("ball", {"noise": 0.1, "spacing": (1.0, 1.0, 2.0)}),
-    ("ellipsoid", {"noise": 0.3, "spacing": (1.0, 1.0, 2.0)}),
-    ("blob", {"noise": 0.1, "spacing": (1.0, 1.0, 2.0)}),
+@pytest.mark.parametrize("kind,options,start", [
+    ("ball", {"noise": 0.3}, 1),
+    ("ellipsoid", {"noise": 0.1}, 2),
+    ("blob", {"noise": 0.2}, 3),
+    ("ball", {"noise": 0.1, "spacing": (1.0, 1.0, 2.0)}, 4),
+    ("ellipsoid", {"noise": 0.3, "spacing": (1.0, 1.0, 2.0)}, 5),
+    ("blob", {"noise": 0.1, "spacing": (1.0, 1.0, 2.0)}, 6),
 ])
-def test_sphere_phantoms_from_half_radius(kind, options):
+def test_sphere_phantoms_from_a_perturbed_start(kind, options, start):
     ph = make_phantom(kind, seed=3, **options)
-    res = _segment(ph)
+    res = _segment(ph, start)
     truth = ph.truth.astype(bool)
     assert dice(res.mask, truth) >= 0.95
     # The surface sits on the boundary, not an edge width inside it: volume within 6 %.
@@ -43,12 +47,14 @@ def test_sphere_phantoms_from_half_radius(kind, options):
     assert res.polarity == "bright"
 
 
-@pytest.mark.parametrize("kind", ["ball", "ellipsoid"])
-def test_a_normal_near_a_pole_does_not_freeze_the_refinement(kind):
+@pytest.mark.parametrize("kind,start", [("ball", None), ("ellipsoid", None), ("ball", 7),
+                                        ("ellipsoid", 8)])
+def test_a_normal_near_a_pole_does_not_freeze_the_refinement(kind, start):
     # Seed 2: one grid normal in the second knot interval from a pole turned over early in the
-    # refinement, and the fold check then refused every step (Dice 0.90 and 0.84).
+    # refinement, and the fold check then refused every step (Dice 0.90 and 0.84; measured
+    # from the phantom's unperturbed start, kept here as the regression case it was).
     ph = make_phantom(kind, seed=2, noise=0.1)
-    res = _segment(ph)
+    res = _segment(ph, start)
     assert dice(res.mask, ph.truth.astype(bool)) >= 0.99
     u, v = np.linspace(0, 1, 60, endpoint=False), np.linspace(0.001, 0.999, 60)
     s, n = res.model.evaluate(u, v)[0], res.model.normals(u, v)
@@ -71,7 +77,7 @@ def test_fold_check_rows_leave_out_the_pole_intervals():
 
 def test_dark_object_on_bright_background_is_found_with_auto_polarity():
     ph = make_phantom("ball", seed=4, noise=0.2, foreground=20.0, background=100.0)
-    res = _segment(ph)
+    res = _segment(ph, 9)
     assert res.polarity == "dark"
     assert dice(res.mask, ph.truth.astype(bool)) >= 0.95
 
@@ -85,14 +91,14 @@ def test_internal_edges_inside_the_initial_surface_do_not_trap_the_snake():
     core = np.linalg.norm(idx - centre, axis=1).reshape(image.shape) < 4.0
     image[core] = 20.0
     ph.image = image
-    res = _segment(ph)
+    res = _segment(ph, 10)
     assert dice(res.mask, ph.truth.astype(bool)) >= 0.95
 
 
 @pytest.mark.parametrize("std", [50])
 def test_hollow_cylinder_of_table_7_2(std):
     ph = make_phantom("hollow-cylinder", seed=0, std=std)
-    res = _segment(ph, feature="surface")
+    res = _segment(ph, 11, feature="surface")
     assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
 
 
@@ -100,8 +106,8 @@ def test_cylinder_along_x_is_integrated_across_its_axis():
     # Along x the lookup's integration axis would run through the open ends (whose caps are not
     # integrated; measured before: "no boundary found"). The pipeline turns the frame instead.
     ph = make_phantom("hollow-cylinder", seed=1, std=50, axis=(1.0, 0.0, 0.0))
-    res = _segment(ph, feature="surface")
-    assert res.settings["integration_axis"] == 1
+    res = _segment(ph, 12, feature="surface")
+    assert res.settings["integration_axis"] != 0  # across the tube, whichever of y and z
     assert res.mask.shape == ph.truth.shape
     assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
     c, axis = _center_and_axis(res.model)
@@ -114,10 +120,11 @@ def test_oblique_cylinder_is_segmented_in_a_rotated_frame():
     # in permuted frames only, this short tube gave Jaccard 0.67.
     axis = (-0.6204749, 0.48984205, 0.35688701)
     ph = make_phantom("hollow-cylinder", seed=3, std=50, axis=axis, length=70.0, radius=20.0)
-    res = _segment(ph, feature="surface")
+    res = _segment(ph, 13, feature="surface")
     assert "integration_axis" not in res.settings
     d = np.asarray(res.settings["integration_direction"])
-    assert abs(d @ np.asarray(axis)) < 1e-3 * np.linalg.norm(axis)  # (the init is rounded)
+    start_axis = _center_and_axis(res.init_model)[1]  # the frame comes from the (perturbed) start
+    assert abs(d @ start_axis) < 1e-3 * np.linalg.norm(start_axis)
     assert res.mask.shape == ph.truth.shape
     assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
 
@@ -199,11 +206,11 @@ def test_rotated_frame_resamples_the_image(monkeypatch):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("std,minimum", [(0, 0.94), (10, 0.94), (30, 0.94), (50, 0.94), (70, 0.92),
-                                         (90, 0.92)])
-def test_table_7_2_all_rows(std, minimum):
+@pytest.mark.parametrize("std,minimum,start", [(0, 0.94, 14), (10, 0.94, 15), (30, 0.94, 16),
+                                               (50, 0.94, 17), (70, 0.92, 18), (90, 0.92, 19)])
+def test_table_7_2_all_rows(std, minimum, start):
     ph = make_phantom("hollow-cylinder", seed=1, std=std)
-    res = _segment(ph, feature="surface")
+    res = _segment(ph, start, feature="surface")
     assert jaccard(res.mask, ph.truth.astype(bool)) >= minimum
     if std == 0:
         assert _mid_surface_distance(res.model, ph.params) < 0.3
@@ -281,9 +288,10 @@ def test_seed_point_is_a_world_position_with_world(monkeypatch):
 
     monkeypatch.setattr(features, "edge_map", spy)
     shift = np.array([100.0, -50.0, 20.0])  # world = index * spacing + shift (spacing 1 mm)
-    centre = np.asarray(ph.init["center"], dtype=float)
+    init = perturbed_init(ph, 20)
+    centre = np.asarray(init["center"], dtype=float)
     config = SegmentConfig.from_mapping({
-        "world": True, "center": list(centre + shift), "radii": ph.init["radii"],
+        "world": True, "center": list(centre + shift), "radii": init["radii"],
         "seed_point": list(centre + shift)})
     res = segment_volume(ph.image, ph.spacing, config, index_from_world=lambda p: p - shift)
     assert np.allclose(seen[0], centre)

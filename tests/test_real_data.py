@@ -1,0 +1,168 @@
+"""The real-data benchmark's derivations (benchmarks/real/cases.py, fetch.py) and a small real subset.
+
+Synthetic checks always run; those marked ``real`` need the cached public scans
+(``make bench-real-data``) and are skipped, with the reason, when they are not there.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REAL = os.path.join(ROOT, "benchmarks", "real")
+sys.path.insert(0, REAL)
+
+import cases as derive  # noqa: E402
+import fetch  # noqa: E402
+
+
+def _cached_cases() -> list[dict]:
+    try:
+        return fetch.load_cases()
+    except FileNotFoundError as exc:
+        pytest.skip(f"real data not cached ({exc})")
+
+
+def _case(name: str) -> dict:
+    return next(c for c in _cached_cases() if c["name"] == name)
+
+
+# ------------------------------------------------------------------------------------------
+# Derivations on synthetic arrays
+# ------------------------------------------------------------------------------------------
+
+
+def test_sphere_click_is_the_deepest_point_with_half_its_depth():
+    sp = (1.0, 1.0, 2.0)
+    idx = np.indices((41, 41, 21)).astype(float)
+    # A ball of radius 12 mm centred at voxel (20, 18, 10).
+    d = np.sqrt(((idx[0] - 20) * sp[0]) ** 2 + ((idx[1] - 18) * sp[1]) ** 2 + ((idx[2] - 10) * sp[2]) ** 2)
+    click = derive.sphere_click(d <= 12.0, sp)
+    assert click["center"] == [20, 18, 10]
+    # Depth of the centre voxel: its distance to the nearest background voxel centre (brute force).
+    depth = d[d > 12.0].min()
+    assert 12.0 < depth < 13.0
+    np.testing.assert_allclose(np.asarray(click["radii"]) * sp, [depth / 2] * 3, atol=2e-3)
+
+
+def _synthetic_ct(split_at: int) -> np.ndarray:
+    """A body (40 HU) in air, a tube of air along axis 2 above ``split_at`` that splits in two
+    below it (two bronchi), and a separate lung-like air pocket beside it."""
+    hu = np.full((60, 60, 30), -1000.0)
+    idx = np.indices(hu.shape)
+    body = (idx[0] - 30) ** 2 + (idx[1] - 30) ** 2 < 27 ** 2
+    hu[body] = 40.0
+    r2 = (idx[0] - 30) ** 2 + (idx[1] - 30) ** 2
+    hu[(r2 <= 16) & (idx[2] >= split_at)] = -1000.0
+    for dx in (-6, 6):
+        hu[((idx[0] - 30 - dx) ** 2 + (idx[1] - 30) ** 2 <= 6) & (idx[2] < split_at)] = -1000.0
+    hu[(idx[0] - 12) ** 2 + (idx[1] - 30) ** 2 <= 9] = -990.0
+    return hu
+
+
+def test_trachea_is_cut_where_the_lumen_splits():
+    hu = _synthetic_ct(split_at=12)
+    mask, slices = derive.trachea_reference(hu, (1.0, 1.0, 1.0))
+    assert slices == list(range(29, 11, -1))
+    assert not mask[:, :, :12].any()
+    assert mask[:, :, 12:].sum() == 18 * np.count_nonzero((np.indices((60, 60))[0] - 30) ** 2
+                                                          + (np.indices((60, 60))[1] - 30) ** 2 <= 16)
+    assert not mask[12, 30, :].any()  # the separate pocket is not tracked
+
+
+def test_tube_click_shortens_the_axis_and_halves_the_radius():
+    hu = _synthetic_ct(split_at=12)
+    sp = (0.5, 0.5, 2.0)
+    mask, slices = derive.trachea_reference(hu, sp)
+    click = derive.tube_click(mask, slices, sp)
+    # Axis from slice 29 to 12 (34 mm), shortened by 15 % at each end: 29 - 2.55 and 12 + 2.55.
+    np.testing.assert_allclose(click["axis_start"], [30, 30, 29 - 0.15 * 17], atol=1e-3)
+    np.testing.assert_allclose(click["axis_end"], [30, 30, 12 + 0.15 * 17], atol=1e-3)
+    area = np.count_nonzero(mask[:, :, 20]) * 0.25
+    np.testing.assert_allclose(click["radius"] * 0.5, 0.5 * np.sqrt(area / np.pi), atol=1e-3)
+
+
+def test_lps_nrrd_affine_maps_a_landmark_as_itk_does(tmp_path):
+    """An oblique LPS image written as NRRD: the RAS affine agrees with ITK's physical points."""
+    import SimpleITK as sitk
+
+    arr = np.zeros((7, 6, 5), np.int16)  # SimpleITK's [k, j, i]
+    img = sitk.GetImageFromArray(arr)
+    c, s = np.cos(0.3), np.sin(0.3)
+    img.SetDirection((c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0))
+    img.SetSpacing((0.7, 0.8, 5.0))
+    img.SetOrigin((-170.5, -324.5, -360.0))
+    path = str(tmp_path / "oblique.nrrd")
+    sitk.WriteImage(img, path)
+    data, affine = fetch._load_nrrd(path)
+    assert data.shape == (5, 6, 7)
+    for ijk in [(0, 0, 0), (4, 5, 6), (2, 1, 3)]:
+        lps = np.asarray(img.TransformIndexToPhysicalPoint(ijk))
+        ras = affine @ np.r_[ijk, 1.0]
+        np.testing.assert_allclose(ras[:3], lps * [-1, -1, 1], atol=1e-9)
+
+
+def test_written_cases_are_byte_deterministic(tmp_path):
+    data = np.arange(24, dtype=np.int16).reshape(2, 3, 4)
+    a, b = str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz")
+    fetch.write_nifti(a, data, np.diag([2.0, 1.0, 1.0, 1.0]))
+    os.utime(a, (0, 0))
+    fetch.write_nifti(b, data, np.diag([2.0, 1.0, 1.0, 1.0]))
+    assert fetch.sha256(a) == fetch.sha256(b)
+
+
+# ------------------------------------------------------------------------------------------
+# On the cached public scans
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.real
+def test_cached_cases_match_the_recorded_checksums():
+    cases = _cached_cases()
+    with open(fetch.CHECKSUMS) as fh:
+        recorded = json.load(fh)["cases"]
+    folder = os.path.dirname(cases[0]["image"])
+    assert {n: fetch.sha256(os.path.join(folder, n)) for n in recorded} == recorded
+
+
+@pytest.mark.real
+def test_lung2_landmark_in_world_coordinates():
+    """The tumour's centroid, through the NIfTI written by fetch and segsnake's loader, lands
+    where ITK puts it in the original NRRD (LPS, x and y negated)."""
+    import SimpleITK as sitk
+
+    from segsnake.io import load_volume
+
+    case = _case("lung2-tumour")
+    nrrd = os.path.join(fetch.cache_dir(), "unpacked", "pyradiomics", "pyradiomics-3.0.1", "data",
+                        "lung2_label.nrrd")
+    label = sitk.ReadImage(nrrd)
+    kji = np.argwhere(sitk.GetArrayFromImage(label) == 1).mean(axis=0)
+    lps = np.asarray(label.TransformContinuousIndexToPhysicalPoint(tuple(kji[::-1])))
+    vol = load_volume(case["truth"])
+    ijk = np.argwhere(vol.data != 0).mean(axis=0)
+    # NIfTI stores its affine in float32: 1e-5 mm of rounding at 300 mm from the origin.
+    np.testing.assert_allclose(vol.index_to_world(ijk[None])[0], lps * [-1, -1, 1], atol=1e-4)
+
+
+@pytest.mark.real
+def test_perfect_edges_tumour_is_found_from_its_click():
+    """The ceiling with perfect edges (the reference as the image) on the lung tumour, from the
+    benchmark's click with default options: measured 0.904 at the baseline (docs/benchmarks.md)."""
+    import nibabel as nib
+
+    from segsnake.config import SegmentConfig
+    from segsnake.metrics import dice
+    from segsnake.pipeline import segment_volume
+
+    case = _case("lung2-tumour")
+    img = nib.load(case["truth"])
+    truth = np.asanyarray(img.dataobj) != 0
+    res = segment_volume(truth.astype(np.float32), img.header.get_zooms()[:3],
+                         SegmentConfig.from_mapping(case["init"]))
+    assert dice(res.mask, truth) >= 0.85
