@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 from machine import machine_info, report  # noqa: E402 (benchmarks/ is on sys.path)
-from peer_methods import (largest, mcv, mgac, otsu_morphology,  # noqa: E402
+from peer_methods import (init_center, largest, mcv, mgac, otsu_morphology,  # noqa: E402
                           region_post, sitk_gac, unit)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -138,7 +138,7 @@ def run_method(method: str, vol: dict, ph, init: np.ndarray, params: dict) -> tu
     img = ph.image.astype(np.float32)
     sp = tuple(float(s) for s in ph.spacing)
     sheet = vol["family"] == "cylinder"
-    center = tuple(int(round(c)) for c in np.argwhere(init).mean(axis=0))
+    center = init_center(init)
     axis = None
     if ph.init["shape"] == "cylinder":
         axis = int(np.argmax(np.abs(np.subtract(ph.init["axis_end"], ph.init["axis_start"]))))

@@ -62,6 +62,8 @@ for _p in (os.path.join(HERE, "real"), HERE, ROOT):
 
 from machine import machine_info, report  # noqa: E402
 
+#: The whole-head case: BET and ROBEX run on it, the generic region growers do not.
+BRAIN_CASE = "colin27-brain"
 SEGSNAKE = "segsnake"
 NO_CLICK = "segsnake, no click"
 CEILING = "segsnake, perfect edges"
@@ -167,9 +169,14 @@ def run_segsnake(image: str, init: dict | None, tmp: str, extra: list[str] | Non
     cmd = [_segsnake_exe(), "segment", image, "--out", out, "--quiet", "--json", "--overwrite",
            *init_args(init), *(extra or [])]
     res = run_measured(cmd, timeout_s=TIMEOUT_S)
-    res["warnings"] = [ln for ln in res.get("stderr_tail", "").splitlines() if ": warning: " in ln]
     mask = os.path.join(out, "mask.nii.gz")
     res["mask"] = mask if res["returncode"] == 0 and os.path.exists(mask) else None
+    res["warnings"] = []
+    if res["mask"]:
+        with open(os.path.join(out, "snake.json")) as fh:
+            saved = json.load(fh)
+        res["warnings"] = saved["summary"].get("warnings", [])
+        res["notes"] = {"edge_support": saved["settings"].get("edge_support")}
     return res
 
 
@@ -226,10 +233,12 @@ def _score(res: dict, truth: np.ndarray, sp, mask: np.ndarray | None) -> dict:
     """The row of one run: metrics (or the error), time, memory, exit code, warnings."""
     from segsnake.metrics import evaluate_masks
 
-    row = {k: res.get(k) for k in ("wall_s", "peak_rss_mb", "returncode", "warnings", "notes")}
+    row = {k: res.get(k) for k in ("wall_s", "peak_rss_mb", "returncode", "timed_out", "warnings",
+                                   "notes")}
     if mask is None:
         tail = (res.get("error") or res.get("stderr_tail") or "").strip().splitlines()[-1:]
-        row["error"] = tail[0] if tail else f"exit {res.get('returncode')}"
+        row["error"] = (f"timed out after {TIMEOUT_S:g} s" if res.get("timed_out")
+                        else tail[0] if tail else f"exit {res.get('returncode')}")
         return row
     m = evaluate_masks(mask, truth, sp)
     row.update({k: m[k] for k in METRICS})
@@ -245,8 +254,9 @@ def _mask_from(res: dict, shape) -> np.ndarray | None:
 
 
 def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: str | None,
-             params: dict) -> dict:
-    """Every tool on one case, from the click and its perturbations."""
+             params: dict, keep: str | None = None) -> dict:
+    """Every tool on one case, from the click and its perturbations (``keep``: copy each
+    segsnake run's output folder there)."""
     truth = _load(case["truth"]) != 0
     sp = _spacing(case["truth"])
     out: dict[str, Any] = {"case": case["name"], "structure": case["structure"],
@@ -260,6 +270,11 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
             mask = _mask_from(res, truth.shape)
             row = {"tool": tool, "start": label, "init": init, **extra, **_score(res, truth, sp, mask)}
             out["runs"].append(row)
+            if keep and res.get("mask"):  # the whole output folder, for a later look
+                dest = os.path.join(keep, case["name"], f"{tool}-{label}".replace(" ", "_")
+                                    .replace(",", "") + (f"-m{extra['m'][0]}" if "m" in extra else ""))
+                shutil.rmtree(dest, ignore_errors=True)
+                shutil.copytree(os.path.dirname(res["mask"]), dest)
             brief = f"{row['dice']:.3f}" if "dice" in row else f"failed ({row['error'][:60]})"
             print(f"[bench_real] {case['name']}: {tool} ({label}): {brief}, "
                   f"{row['wall_s']:.1f} s, {row['peak_rss_mb']:.0f} MB", file=sys.stderr, flush=True)
@@ -272,26 +287,22 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
                     seg_click_mask = mask
             # On the brain, users run BET and ROBEX; a generic region grower's region of
             # interest would be the whole 7 M-voxel head (15+ min a run for the morphological ones).
-            for method in (m for m in PEERS if m in tools and case["name"] != "colin27-brain"):
+            for method in (m for m in PEERS if m in tools and case["name"] != BRAIN_CASE):
                 record(method, label, init, run_peer(method, case, init, params[method], tmp))
-        if NO_CLICK in tools and case["name"] == "colin27-brain":
+        if NO_CLICK in tools and case["name"] == BRAIN_CASE:
             record(NO_CLICK, "none", None, run_segsnake(case["image"], None, tmp))
-        if CEILING in tools:
-            perfect = os.path.join(tmp, "perfect.nii.gz")
-            _write_like(case["truth"], truth.astype(np.float32), perfect)
+        if CEILING in tools:  # the reference itself (0/1 on the same grid) as the image
             grids = CEILING_M[case["init"]["shape"]][: 1 if quick else None]
             for m1, m2 in grids:
                 record(CEILING, "click", case["init"],
-                       run_segsnake(perfect, case["init"], tmp, ["--m1", str(m1), "--m2", str(m2)]),
-                       m=[m1, m2])
-        for tool in (t for t in BRAIN_TOOLS if t in tools):
-            if case["name"] != "colin27-brain":
-                continue
+                       run_segsnake(case["truth"], case["init"], tmp,
+                                    ["--m1", str(m1), "--m2", str(m2)]), m=[m1, m2])
+        for tool in (t for t in BRAIN_TOOLS if t in tools and case["name"] == BRAIN_CASE):
             import brain_tools
 
             name = next(k for k in brain_tools.TOOLS if k.startswith(tool))
             mask_path = os.path.join(tmp, f"{tool}.nii.gz")
-            res = brain_tools.run_tool(name, case["image"], mask_path, _cache())
+            res = brain_tools.run_tool(name, case["image"], mask_path, _cache(), TIMEOUT_S)
             res["mask"] = mask_path if res["returncode"] == 0 and os.path.exists(mask_path) else None
             record(tool, "none", None, res)
         if qc_dir and seg_click_mask is not None:
@@ -302,17 +313,20 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
     return out
 
 
+def _brain_tool_settings(tools: list[str]) -> dict:
+    """The pinned requirements and settings of the whole-head tools that will run."""
+    if not any(t in tools for t in BRAIN_TOOLS):
+        return {}
+    import brain_tools
+
+    return {name: {k: spec[k] for k in ("requirements", "settings", "argv")}
+            for name, spec in brain_tools.TOOLS.items()}
+
+
 def _cache() -> str:
     from fetch import cache_dir
 
     return cache_dir()
-
-
-def _write_like(reference: str, data: np.ndarray, path: str) -> None:
-    import nibabel as nib
-
-    ref = nib.load(reference)
-    nib.save(nib.Nifti1Image(data, ref.affine, ref.header), path)
 
 
 def qc_picture(path: str, case: dict, truth: np.ndarray, sp, seg: np.ndarray) -> None:
@@ -323,27 +337,13 @@ def qc_picture(path: str, case: dict, truth: np.ndarray, sp, seg: np.ndarray) ->
     image = _load(case["image"]).astype(np.float32)
     click = init_mask(case["init"], truth.shape, sp)
     centre = np.round(np.argwhere(click).mean(axis=0)).astype(int)
+    from segsnake.runner import slice_panel
+
     fig = Figure(figsize=(12, 4.2), dpi=72)
-    names = ("i", "j", "k")
+    contours = [(truth, "lime", "solid", 1.0), (seg, "red", "solid", 1.0),
+                (click, "yellow", "dashed", 1.0)]
     for panel, axis in enumerate((2, 1, 0)):
-        ax = fig.add_subplot(1, 3, panel + 1)
-        sl = [slice(None)] * 3
-        sl[axis] = int(centre[axis])
-        sl = tuple(sl)
-        other = [d for d in range(3) if d != axis]
-        extent = (0, truth.shape[other[0]] * sp[other[0]], 0, truth.shape[other[1]] * sp[other[1]])
-        lo, hi = np.percentile(image[sl], [1, 99.5])
-        ax.imshow(image[sl].T, cmap="gray", origin="lower", vmin=lo, vmax=hi, extent=extent,
-                  interpolation="nearest")
-        xs = (np.arange(truth.shape[other[0]]) + 0.5) * sp[other[0]]
-        ys = (np.arange(truth.shape[other[1]]) + 0.5) * sp[other[1]]
-        for mask, colour, style in ((truth, "lime", "solid"), (seg, "red", "solid"),
-                                    (click, "yellow", "dashed")):
-            if mask[sl].any():
-                ax.contour(xs, ys, mask[sl].T.astype(float), [0.5], colors=colour,
-                           linestyles=style, linewidths=1.0)
-        ax.set_title(f"{names[axis]} = {centre[axis]}", fontsize=9)
-        ax.tick_params(labelsize=7)
+        slice_panel(fig.add_subplot(1, 3, panel + 1), image, sp, axis, int(centre[axis]), contours)
     fig.suptitle(f"{case['name']}: reference (green), segsnake from the click (red), "
                  f"click (yellow)", fontsize=10)
     fig.subplots_adjust(left=0.04, right=0.99, bottom=0.07, top=0.88, wspace=0.2)
@@ -360,10 +360,11 @@ def _fmt(x: float | None, spec: str) -> str:
 
 
 def summarize(runs: list[dict]) -> dict:
-    """Click row and spread over perturbed clicks of one tool on one case."""
+    """Click row, Dice over the perturbed clicks (a failed run counts as 0) and their failures."""
     click = next((r for r in runs if r["start"] in ("click", "none")), runs[0])
-    pert = [r.get("dice", 0.0) for r in runs if r["start"].startswith("perturbed")]
-    return {"click": click, "perturbed": pert}
+    pert = [r for r in runs if r["start"].startswith("perturbed")]
+    return {"click": click, "perturbed": [r.get("dice", 0.0) for r in pert],
+            "failed": sum("dice" not in r for r in pert)}
 
 
 def markdown(info: dict) -> str:
@@ -374,7 +375,8 @@ def markdown(info: dict) -> str:
              + (f" with local changes in {', '.join(m['segsnake_modified'])}"
                 if m.get("segsnake_modified") else "") + f"; {info['date']}.",
              f"Command: `{info['command']}` (total {info['total_s'] / 60:.1f} min).", "",
-             "| case | tool | Dice (click) | perturbed clicks: min / median / max Dice (n) | "
+             "| case | tool | Dice (click) | perturbed clicks: min / median / max Dice (n; a failed "
+             "run counts 0) | "
              "HD95 (mm) | ASSD (mm) | time (s) | peak (MB) | exit, warnings |",
              "|---|---|---|---|---|---|---|---|---|"]
     for case in info["cases"]:
@@ -392,7 +394,8 @@ def markdown(info: dict) -> str:
             c = s["click"]
             pert = s["perturbed"]
             spread = (f"{min(pert):.3f} / {statistics.median(pert):.3f} / {max(pert):.3f} "
-                      f"({len(pert)})" if pert else "")
+                      f"({len(pert)}" + (f", {s['failed']} failed)" if s["failed"] else ")")
+                      if pert else "")
             dice = _fmt(c.get("dice"), ".3f") if "error" not in c else f"failed: {c['error'][:70]}"
             flags = f"{c.get('returncode')}, " + (f"{len(c['warnings'])} warning(s)"
                                                   if c.get("warnings") else "none")
@@ -444,6 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--qc", metavar="DIR", default=None,
                     help="write a QC montage per case here (default: docs/real for a full run)")
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers here")
+    ap.add_argument("--keep", metavar="DIR", help="keep every segsnake run's outputs here")
     ap.add_argument("--tune", action="store_true", help="the peers' parameter sweep")
     ap.add_argument("--report", nargs="+", metavar="JSON",
                     help="print the table of earlier runs' --json files (merged) and exit")
@@ -478,13 +482,15 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     exe = sys.executable
     info: dict[str, Any] = {
-        "machine": machine_info(), "date": time.strftime("%Y-%m-%d"), "params": PEER_PARAMS,
+        "machine": machine_info(), "date": time.strftime("%Y-%m-%d"), "total_s": 0.0,
+        "params": {**PEER_PARAMS, **_brain_tool_settings(tools)},
         "command": " ".join([os.path.relpath(exe, ROOT) if exe.startswith(ROOT) else exe,
                              os.path.relpath(__file__, ROOT), *(argv if argv is not None
                                                                 else sys.argv[1:])]),
         "cases": []}
     for case in cases:
-        info["cases"].append(run_case(case, tools, args.clicks, args.quick, qc, PEER_PARAMS))
+        info["cases"].append(run_case(case, tools, args.clicks, args.quick, qc, PEER_PARAMS,
+                                     args.keep))
         info["total_s"] = time.perf_counter() - t0
         if args.json:  # after every case: a long run stopped half-way keeps what it measured
             with open(args.json, "w") as fh:
@@ -493,20 +499,24 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def merge(paths: list[str]) -> dict:
-    """Runs of several ``--json`` files (the same cases, other tools) as one report."""
+    """Runs of several ``--json`` files as one report: a later file's runs of a tool on a case
+    replace an earlier file's; the header is the first file's, with every command and the
+    summed run time (the runs may have overlapped: see the dates)."""
     infos = []
     for path in paths:
         with open(path) as fh:
             infos.append(json.load(fh))
-    merged = dict(infos[0], cases=[], total_s=max(i["total_s"] for i in infos),
-                  command=" + ".join(f"`{i['command']}`" for i in infos).strip("`"))
+    merged = dict(infos[0], cases=[], total_s=sum(i["total_s"] for i in infos),
+                  command="` + `".join(i["command"] for i in infos),
+                  params={k: v for i in infos for k, v in i["params"].items()})
     for info in infos:
         for case in info["cases"]:
             into = next((c for c in merged["cases"] if c["case"] == case["case"]), None)
             if into is None:
                 merged["cases"].append(dict(case, runs=list(case["runs"])))
-            else:
-                into["runs"].extend(case["runs"])
+                continue
+            tools = {r["tool"] for r in case["runs"]}
+            into["runs"] = [r for r in into["runs"] if r["tool"] not in tools] + case["runs"]
     return merged
 
 

@@ -75,6 +75,8 @@ def perturb_init(init: dict, spacing: Sequence[float], seed: int, *, shift: floa
     """
     from .pipeline import perpendicular_spacing  # the cylinder radius' voxel convention
 
+    if init.get("world"):
+        raise ValueError("perturb_init takes voxel-index initializations, not world ones")
     rng = np.random.default_rng(seed)
     sp = np.asarray(spacing, dtype=np.float64)
     out = dict(init)

@@ -408,6 +408,36 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def slice_panel(ax, image: np.ndarray, spacing, axis: int, index: int,
+                contours: list[tuple[np.ndarray, str, str, float]],
+                levels: tuple[float, float] | None = None) -> None:
+    """One slice of ``image`` across array ``axis`` at ``index``, in mm with the physical aspect
+    ratio, and each mask of ``contours`` (mask, colour, line style, width) as a contour.
+
+    ``levels``: the grey range (default the slice's 1st and 99.5th percentiles).
+    """
+    sp = np.asarray(spacing, dtype=float)
+    sl = [slice(None)] * 3
+    sl[axis] = index
+    sl = tuple(sl)
+    other = [d for d in range(3) if d != axis]
+    extent = (0, image.shape[other[0]] * sp[other[0]], 0, image.shape[other[1]] * sp[other[1]])
+    lo, hi = levels if levels is not None else np.percentile(image[sl], [1, 99.5])
+    ax.imshow(image[sl].T, cmap="gray", origin="lower", vmin=lo, vmax=hi, extent=extent,
+              interpolation="nearest")
+    xs = (np.arange(image.shape[other[0]]) + 0.5) * sp[other[0]]
+    ys = (np.arange(image.shape[other[1]]) + 0.5) * sp[other[1]]
+    for mask, colour, style, width in contours:
+        if mask[sl].any():
+            ax.contour(xs, ys, mask[sl].T.astype(float), [0.5], colors=colour, linestyles=style,
+                       linewidths=width)
+    names = ("i (x)", "j (y)", "k (z)")
+    ax.set_title(f"{names[axis]} = {index}", fontsize=9)
+    ax.set_xlabel(f"{names[other[0]]} mm", fontsize=8)
+    ax.set_ylabel(f"{names[other[1]]} mm", fontsize=8)
+    ax.tick_params(labelsize=7)
+
+
 def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, model,
                      init_model=None) -> None:
     """Three orthogonal slices through the object with the contour, and a 3D view.
@@ -431,26 +461,11 @@ def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, mo
     shown = [np.take(image, int(centre[axis]), axis=axis).ravel() for axis in range(3)]
     lo, hi = np.percentile(np.concatenate(shown), [1, 99.5])
     fig = Figure(figsize=(13, 3.6), dpi=90)
-    names = ("i (x)", "j (y)", "k (z)")
+    contours = ([] if init_mask is None else [(init_mask, "yellow", "dashed", 0.8)]) + \
+        [(mask, "red", "solid", 1.0)]
     for panel, axis in enumerate((2, 1, 0)):
         ax = fig.add_subplot(1, 4, panel + 1)
-        sl = [slice(None)] * 3
-        sl[axis] = int(centre[axis])
-        other = [d for d in range(3) if d != axis]
-        extent = (0, mask.shape[other[0]] * sp[other[0]], 0, mask.shape[other[1]] * sp[other[1]])
-        ax.imshow(image[tuple(sl)].T, cmap="gray", origin="lower", vmin=lo, vmax=hi, extent=extent,
-                  interpolation="nearest")
-        xs = (np.arange(mask.shape[other[0]]) + 0.5) * sp[other[0]]
-        ys = (np.arange(mask.shape[other[1]]) + 0.5) * sp[other[1]]
-        if init_mask is not None and init_mask[tuple(sl)].any():
-            ax.contour(xs, ys, init_mask[tuple(sl)].T.astype(float), [0.5], colors="yellow",
-                       linestyles="dashed", linewidths=0.8)
-        if mask[tuple(sl)].any():
-            ax.contour(xs, ys, mask[tuple(sl)].T.astype(float), [0.5], colors="red", linewidths=1.0)
-        ax.set_title(f"{names[axis]} = {centre[axis]}", fontsize=9)
-        ax.set_xlabel(f"{names[other[0]]} mm", fontsize=8)
-        ax.set_ylabel(f"{names[other[1]]} mm", fontsize=8)
-        ax.tick_params(labelsize=7)
+        slice_panel(ax, image, sp, axis, int(centre[axis]), contours, levels=(lo, hi))
     ax3 = fig.add_subplot(1, 4, 4, projection="3d")
     mesh = model.to_mesh(4 * model.m1, 4 * model.m2)
     faces = np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]

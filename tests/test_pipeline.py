@@ -107,7 +107,7 @@ def test_cylinder_along_x_is_integrated_across_its_axis():
     # integrated; measured before: "no boundary found"). The pipeline turns the frame instead.
     ph = make_phantom("hollow-cylinder", seed=1, std=50, axis=(1.0, 0.0, 0.0))
     res = _segment(ph, 12, feature="surface")
-    assert res.settings["integration_axis"] != 0  # across the tube, whichever of y and z
+    assert res.settings["integration_axis"] in (1, 2)  # across the tube, whichever of y and z
     assert res.mask.shape == ph.truth.shape
     assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
     c, axis = _center_and_axis(res.model)

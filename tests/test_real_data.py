@@ -15,7 +15,7 @@ import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REAL = os.path.join(ROOT, "benchmarks", "real")
-sys.path.insert(0, REAL)
+sys.path[:0] = [REAL, os.path.dirname(REAL)]
 
 import cases as derive  # noqa: E402
 import fetch  # noqa: E402
@@ -67,7 +67,7 @@ def _synthetic_ct(split_at: int) -> np.ndarray:
 
 def test_trachea_is_cut_where_the_lumen_splits():
     hu = _synthetic_ct(split_at=12)
-    mask, slices = derive.trachea_reference(hu, (1.0, 1.0, 1.0))
+    mask, slices = derive.trachea_reference(hu)
     assert slices == list(range(29, 11, -1))
     assert not mask[:, :, :12].any()
     assert mask[:, :, 12:].sum() == 18 * np.count_nonzero((np.indices((60, 60))[0] - 30) ** 2
@@ -78,7 +78,7 @@ def test_trachea_is_cut_where_the_lumen_splits():
 def test_tube_click_shortens_the_axis_and_halves_the_radius():
     hu = _synthetic_ct(split_at=12)
     sp = (0.5, 0.5, 2.0)
-    mask, slices = derive.trachea_reference(hu, sp)
+    mask, slices = derive.trachea_reference(hu)
     click = derive.tube_click(mask, slices, sp)
     # Axis from slice 29 to 12 (34 mm), shortened by 15 % at each end: 29 - 2.55 and 12 + 2.55.
     np.testing.assert_allclose(click["axis_start"], [30, 30, 29 - 0.15 * 17], atol=1e-3)
@@ -99,7 +99,7 @@ def test_lps_nrrd_affine_maps_a_landmark_as_itk_does(tmp_path):
     img.SetOrigin((-170.5, -324.5, -360.0))
     path = str(tmp_path / "oblique.nrrd")
     sitk.WriteImage(img, path)
-    data, affine = fetch._load_nrrd(path)
+    data, affine = fetch._load(path)  # segsnake.io's reader, as every case is read
     assert data.shape == (5, 6, 7)
     for ijk in [(0, 0, 0), (4, 5, 6), (2, 1, 3)]:
         lps = np.asarray(img.TransformIndexToPhysicalPoint(ijk))
@@ -107,13 +107,20 @@ def test_lps_nrrd_affine_maps_a_landmark_as_itk_does(tmp_path):
         np.testing.assert_allclose(ras[:3], lps * [-1, -1, 1], atol=1e-9)
 
 
-def test_written_cases_are_byte_deterministic(tmp_path):
+def test_written_cases_carry_no_timestamp_and_hash_their_content(tmp_path):
+    import gzip
+
     data = np.arange(24, dtype=np.int16).reshape(2, 3, 4)
     a, b = str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz")
     fetch.write_nifti(a, data, np.diag([2.0, 1.0, 1.0, 1.0]))
-    os.utime(a, (0, 0))
-    fetch.write_nifti(b, data, np.diag([2.0, 1.0, 1.0, 1.0]))
+    with open(a, "rb") as fh:
+        assert fh.read(8)[4:8] == b"\0\0\0\0"  # gzip's MTIME field: zero, not the clock
+    # The checksum is the NIfTI's, whatever zlib compressed it to.
+    with open(b, "wb") as fh:
+        fh.write(gzip.compress(gzip.decompress(open(a, "rb").read()), compresslevel=1, mtime=7))
     assert fetch.sha256(a) == fetch.sha256(b)
+    fetch.write_nifti(b, data + 1, np.diag([2.0, 1.0, 1.0, 1.0]))
+    assert fetch.sha256(a) != fetch.sha256(b)
 
 
 # ------------------------------------------------------------------------------------------
@@ -126,8 +133,8 @@ def test_cached_cases_match_the_recorded_checksums():
     cases = _cached_cases()
     with open(fetch.CHECKSUMS) as fh:
         recorded = json.load(fh)["cases"]
-    folder = os.path.dirname(cases[0]["image"])
-    assert {n: fetch.sha256(os.path.join(folder, n)) for n in recorded} == recorded
+    assert fetch._cached_cases_verified(fetch.cache_dir(), {"cases": recorded}) is not None
+    assert len(recorded) == 11  # ten files and the clicks
 
 
 @pytest.mark.real
@@ -151,6 +158,7 @@ def test_lung2_landmark_in_world_coordinates():
 
 
 @pytest.mark.real
+@pytest.mark.slow
 def test_perfect_edges_tumour_is_found_from_its_click():
     """The ceiling with perfect edges (the reference as the image) on the lung tumour, from the
     benchmark's click with default options: measured 0.904 at the baseline (docs/benchmarks.md)."""
@@ -166,3 +174,74 @@ def test_perfect_edges_tumour_is_found_from_its_click():
     res = segment_volume(truth.astype(np.float32), img.header.get_zooms()[:3],
                          SegmentConfig.from_mapping(case["init"]))
     assert dice(res.mask, truth) >= 0.85
+
+
+# ------------------------------------------------------------------------------------------
+# The benchmark's measuring and reporting
+# ------------------------------------------------------------------------------------------
+
+
+def test_run_measured_reports_exit_code_memory_and_timeout():
+    from brain_tools import run_measured
+
+    assert run_measured([sys.executable, "-c", "import sys; sys.exit(3)"])["returncode"] == 3
+    big = run_measured([sys.executable, "-c", "import numpy as np; a = np.ones(25_000_000)"])
+    assert 190 < big["peak_rss_mb"] < 400  # 200 MB of ones, the caller's memory not counted
+    slow = run_measured(["sleep", "5"], timeout_s=0.3)
+    assert slow["timed_out"] and slow["returncode"] == -9 and slow["wall_s"] < 3
+
+
+def test_a_stopped_launcher_takes_its_tool_with_it(tmp_path):
+    import signal
+    import subprocess
+    import time
+
+    import brain_tools
+
+    pidfile = tmp_path / "pid"
+    cmd = ["sh", "-c", f"echo $$ > {pidfile}; exec sleep 30"]
+    launcher = subprocess.Popen([sys.executable, "-I", "-S", "-c", brain_tools._LAUNCHER,
+                                 str(tmp_path / "rusage.json"), "0", *cmd])
+    for _ in range(100):
+        if pidfile.exists() and pidfile.read_text().strip():
+            break
+        time.sleep(0.05)
+    tool = int(pidfile.read_text())
+    launcher.send_signal(signal.SIGTERM)
+    assert launcher.wait(timeout=5) == 128 + signal.SIGTERM
+    time.sleep(0.2)
+    try:
+        state = open(f"/proc/{tool}/status").read()
+    except FileNotFoundError:
+        return  # gone and reaped
+    assert "zombie" in state  # killed, waiting for init to reap it
+
+
+def _info(tool: str, dice: list[float | None], total: float) -> dict:
+    runs = [{"tool": tool, "start": "click" if k == 0 else f"perturbed {k}",
+             **({"dice": d} if d is not None else {"error": "boom"}), "wall_s": 1.0,
+             "peak_rss_mb": 10.0, "returncode": 0 if d is not None else 4, "warnings": []}
+            for k, d in enumerate(dice)]
+    return {"machine": {"nproc": 2, "cpu": "x", "python": "3", "numpy": "2", "scipy": "1"},
+            "date": "2026-11-23", "command": f"run {tool}", "total_s": total,
+            "params": {tool: {"a": 1}}, "cases": [{"case": "c1", "runs": runs}]}
+
+
+def test_merge_replaces_a_rerun_tool_and_the_table_counts_failures(tmp_path):
+    import bench_real
+
+    paths = []
+    for name, info in (("a", _info("segsnake", [0.5, 0.4, 0.6], 10.0)),
+                       ("b", _info("skimage MCV", [0.2, None, 0.3], 5.0)),
+                       ("c", _info("segsnake", [0.7, 0.1, 0.9], 7.0))):
+        paths.append(str(tmp_path / f"{name}.json"))
+        with open(paths[-1], "w") as fh:
+            json.dump(info, fh)
+    merged = bench_real.merge(paths)
+    runs = merged["cases"][0]["runs"]
+    assert sorted(r["tool"] for r in runs) == ["segsnake"] * 3 + ["skimage MCV"] * 3
+    assert [r["dice"] for r in runs if r["tool"] == "segsnake"] == [0.7, 0.1, 0.9]
+    assert merged["total_s"] == 22.0
+    table = bench_real.markdown(merged)
+    assert "| c1 | segsnake | 0.700 | 0.100 / 0.500 / 0.900 (2) |" in table
+    assert "| c1 | skimage MCV | 0.200 | 0.000 / 0.150 / 0.300 (2, 1 failed) |" in table

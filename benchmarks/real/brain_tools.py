@@ -81,12 +81,20 @@ try:  # its own process group, so that a timeout kills the tool's children too
 except OSError as exc:
     sys.exit(f"cannot run {cmd[0]}: {exc}")
 killed = []
-def on_alarm(*_):
-    killed.append(True)
-    os.killpg(pid, signal.SIGKILL)
-signal.signal(signal.SIGALRM, on_alarm)
+def kill_group(signum, _frame):
+    if signum == signal.SIGALRM:
+        killed.append(True)
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except ProcessLookupError:  # already reaped
+        pass
+    if signum != signal.SIGALRM:  # the benchmark was stopped: the tool goes with it
+        os._exit(128 + signum)
+for signum in (signal.SIGALRM, signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    signal.signal(signum, kill_group)
 signal.setitimer(signal.ITIMER_REAL, timeout)  # 0: no timeout
 _, status, ru = os.wait4(pid, 0)
+signal.setitimer(signal.ITIMER_REAL, 0)
 with open(out, "w") as f:
     json.dump({"returncode": os.waitstatus_to_exitcode(status), "wall_s": time.perf_counter() - t0,
                "cpu_s": ru.ru_utime + ru.ru_stime, "peak_rss_mb": ru.ru_maxrss / 1024.0,
@@ -181,7 +189,8 @@ def _mask_on_grid(raw: nib.Nifti1Image, ref: nib.Nifti1Image) -> np.ndarray:
     return (np.asanyarray(raw.dataobj) != 0).astype(np.uint8)
 
 
-def run_tool(tool: str, image: str, out_mask: str, cache_dir: str) -> dict[str, Any]:
+def run_tool(tool: str, image: str, out_mask: str, cache_dir: str,
+             timeout_s: float | None = None) -> dict[str, Any]:
     """Run a peer tool on a NIfTI image in its own env and write its binary brain mask.
 
     The tool writes to a temporary file; ``out_mask`` gets that output ``!= 0`` (a skull-stripped
@@ -195,6 +204,8 @@ def run_tool(tool: str, image: str, out_mask: str, cache_dir: str) -> dict[str, 
         Input NIfTI (T1 with skull) and output mask path.
     cache_dir : str
         Directory for the envs (see :func:`ensure_env`).
+    timeout_s : float, optional
+        Stop the tool after this many seconds (see :func:`run_measured`).
 
     Returns
     -------
@@ -212,9 +223,11 @@ def run_tool(tool: str, image: str, out_mask: str, cache_dir: str) -> dict[str, 
         cmd = [os.path.join(bin_dir, argv[0]), *argv[1:]]
         # The tool's env only: a PYTHONPATH/PYTHONHOME set for the benchmark must not leak in.
         env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
-        res = run_measured(cmd, env=env)
+        res = run_measured(cmd, timeout_s=timeout_s, env=env)
         error = None
-        if res["returncode"] != 0:
+        if res["timed_out"]:
+            error = f"timed out after {timeout_s:g} s"
+        elif res["returncode"] != 0:
             error = f"exit code {res['returncode']}: {res['stderr_tail']}"
         else:
             try:
@@ -224,11 +237,12 @@ def run_tool(tool: str, image: str, out_mask: str, cache_dir: str) -> dict[str, 
                 out.set_data_dtype(np.uint8)
                 out.header.set_slope_inter(1, 0)  # the input's intensity scaling is not the mask's
                 out.to_filename(out_mask)
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, EOFError, nib.filebasedimages.ImageFileError) as exc:
                 error = f"bad output: {exc}"
     shown = [argv[0], *[out_mask if a == raw_path else a for a in argv[1:]]]
     return {"wall_s": res["wall_s"], "cpu_s": res["cpu_s"], "peak_rss_mb": res["peak_rss_mb"],
-            "returncode": res["returncode"], "command": shlex.join(shown), "error": error}
+            "returncode": res["returncode"], "timed_out": res["timed_out"],
+            "command": shlex.join(shown), "error": error}
 
 
 def main() -> None:

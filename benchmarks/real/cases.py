@@ -30,20 +30,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from peer_methods import largest as largest_component  # benchmarks/ is on sys.path
+
 #: Air in a CT (HU): issue 14's definition of the airway lumen.
 AIR_HU = -950.0
 #: Body in a CT (HU): soft tissue and bone are above it, lung parenchyma and air below.
 BODY_HU = -500.0
 #: Fraction of a tube's axis left out of its click at each end (issue 14).
 TUBE_END_FRACTION = 0.15
-
-
-def largest_component(mask: NDArray) -> NDArray[np.bool_]:
-    """The largest 6-connected component of ``mask`` (empty if it is empty)."""
-    labels, n = ndimage.label(mask)
-    if n == 0:
-        return np.zeros(mask.shape, bool)
-    return labels == int(np.argmax(np.bincount(labels.ravel())[1:])) + 1
 
 
 def brain_reference(bet: NDArray) -> NDArray[np.bool_]:
@@ -64,7 +58,8 @@ def sphere_click(truth: NDArray, spacing: Sequence[float]) -> dict:
     to the first in C order (``numpy.argmax``), so the click is deterministic.
     """
     sp = np.asarray(spacing, dtype=float)
-    depth = ndimage.distance_transform_edt(truth, sampling=sp)
+    # Padded with background: outside the array is not part of the structure.
+    depth = ndimage.distance_transform_edt(np.pad(truth, 1), sampling=sp)[1:-1, 1:-1, 1:-1]
     idx = np.unravel_index(int(np.argmax(depth)), truth.shape)
     r_mm = 0.5 * float(depth[idx])
     return {"shape": "sphere", "center": [int(i) for i in idx],
@@ -80,7 +75,7 @@ def body_mask(hu: NDArray) -> NDArray[np.bool_]:
     return body
 
 
-def trachea_reference(hu: NDArray, spacing: Sequence[float]) -> tuple[NDArray[np.bool_], list[int]]:
+def trachea_reference(hu: NDArray) -> tuple[NDArray[np.bool_], list[int]]:
     """The trachea above the carina: air below :data:`AIR_HU` inside the body, tracked slice by slice.
 
     Axis 2 must run from inferior (index 0) to superior. The lumen is tracked downwards from the
@@ -138,17 +133,3 @@ def tube_click(truth: NDArray, slices: list[int], spacing: Sequence[float]) -> d
     return {"shape": "cylinder", "axis_start": np.round(b0 / sp, 3).tolist(),
             "axis_end": np.round(b1 / sp, 3).tolist(),
             "radius": round(0.5 * r_mm / perpendicular_spacing(sp, b1 - b0), 3)}
-
-
-def lps_to_ras_affine(direction: Sequence[float], spacing: Sequence[float],
-                      origin: Sequence[float]) -> NDArray:
-    """The NIfTI (RAS) affine of an ITK/NRRD image given in LPS space, for the array indexed [i, j, k]
-    along the image's own axes (SimpleITK's array transposed).
-
-    ITK: ``p_LPS = origin + D diag(spacing) [i, j, k]``; RAS flips the first two world axes.
-    """
-    d = np.asarray(direction, dtype=float).reshape(3, 3)
-    lps = np.eye(4)
-    lps[:3, :3] = d @ np.diag(np.asarray(spacing, dtype=float))
-    lps[:3, 3] = np.asarray(origin, dtype=float)
-    return np.diag([-1.0, -1.0, 1.0, 1.0]) @ lps

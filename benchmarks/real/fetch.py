@@ -35,7 +35,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
-for p in (HERE, ROOT):
+for p in (HERE, os.path.dirname(HERE), ROOT):
     if p not in sys.path:
         sys.path.insert(0, p)
 
@@ -74,11 +74,20 @@ def cache_dir(path: str | None = None) -> str:
 
 
 def sha256(path: str) -> str:
+    """SHA-256 of a file's bytes; of a ``.gz`` file's uncompressed bytes (another zlib build
+    compresses the same NIfTI to other bytes)."""
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    opener = gzip.open if path.endswith(".gz") and not path.endswith(".tar.gz") else open
+    with opener(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def _clicks_digest(cases: list[dict]) -> str:
+    """SHA-256 of every case's name, role, structure and initialization, canonical JSON."""
+    keep = [{k: c[k] for k in ("name", "role", "structure", "init")} for c in cases]
+    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()
 
 
 def _run(cmd: list[str], cwd: str | None = None) -> None:
@@ -88,14 +97,15 @@ def _run(cmd: list[str], cwd: str | None = None) -> None:
         raise SystemExit(f"fetch: {' '.join(cmd)} failed ({proc.returncode}): " + " | ".join(tail))
 
 
-def _verified(path: str, expected: str | None) -> str:
+def _verified(path: str, expected: str | None, record: bool) -> str:
     got = sha256(path)
-    if expected and got != expected:
-        raise SystemExit(f"fetch: {path}: SHA-256 {got} differs from the recorded {expected}")
+    if not record and got != expected:
+        raise SystemExit(f"fetch: {path}: SHA-256 {got} differs from the recorded "
+                         f"{expected or '(none)'}")
     return got
 
 
-def fetch_sources(cache: str, recorded: dict) -> dict[str, str]:
+def fetch_sources(cache: str, recorded: dict, record: bool = False) -> dict[str, str]:
     """Download the two source archives into ``cache/sources`` (once) and check them."""
     src = os.path.join(cache, "sources")
     os.makedirs(src, exist_ok=True)
@@ -117,14 +127,15 @@ def fetch_sources(cache: str, recorded: dict) -> dict[str, str]:
         _run([py, "-m", "pip", "download", "--quiet", "--no-deps", "--no-binary", ":all:",
               "--no-build-isolation", "-d", src, f"{PYRADIOMICS['package']}=={PYRADIOMICS['version']}"])
     sums = recorded.get("sources", {})
-    return {MRICRON["file"]: _verified(deb, sums.get(MRICRON["file"])),
-            PYRADIOMICS["file"]: _verified(tgz, sums.get(PYRADIOMICS["file"]))}
+    return {MRICRON["file"]: _verified(deb, sums.get(MRICRON["file"]), record),
+            PYRADIOMICS["file"]: _verified(tgz, sums.get(PYRADIOMICS["file"]), record)}
 
 
 def _unpack(cache: str) -> tuple[str, str]:
     """Unpack the sources (once); return the templates folder and the pyradiomics data folder."""
     mricron = os.path.join(cache, "unpacked", "mricron")
-    if not os.path.isdir(os.path.join(mricron, TEMPLATES)):
+    if not all(os.path.exists(os.path.join(mricron, TEMPLATES, f))
+               for f in ("ch2.nii.gz", "ch2bet.nii.gz", "aal.nii.gz")):
         os.makedirs(mricron, exist_ok=True)
         _run(["dpkg-deb", "-x", os.path.join(cache, "sources", MRICRON["file"]), mricron])
     radio = os.path.join(cache, "unpacked", "pyradiomics")
@@ -150,21 +161,13 @@ def write_nifti(path: str, data: np.ndarray, affine: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-def _load_nifti(path: str) -> tuple[np.ndarray, np.ndarray]:
-    import nibabel as nib
+def _load(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """An image (NIfTI, or NRRD through SimpleITK, LPS turned into RAS) as segsnake reads it:
+    the array along the file's own axes and its RAS affine."""
+    from segsnake.io import load_volume
 
-    img = nib.load(path)
-    return np.asanyarray(img.dataobj), img.affine
-
-
-def _load_nrrd(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """An NRRD (LPS) as an array indexed along its own axes and its NIfTI (RAS) affine."""
-    import SimpleITK as sitk
-
-    img = sitk.ReadImage(path)
-    arr = sitk.GetArrayFromImage(img).transpose(2, 1, 0)  # SimpleITK's arrays are [k, j, i]
-    return np.ascontiguousarray(arr), derive.lps_to_ras_affine(img.GetDirection(), img.GetSpacing(),
-                                                               img.GetOrigin())
+    vol = load_volume(path)
+    return vol.data, vol.affine
 
 
 def build_cases(cache: str) -> list[dict[str, Any]]:
@@ -175,45 +178,67 @@ def build_cases(cache: str) -> list[dict[str, Any]]:
     cases: list[dict[str, Any]] = []
 
     def add(name: str, structure: str, image: str, truth_name: str, truth: np.ndarray,
-            affine: np.ndarray, init: dict, source: str, role: str = "benchmark", **extra) -> None:
+            affine: np.ndarray, init: dict, source: str, role: str = "benchmark") -> None:
         write_nifti(os.path.join(out, truth_name), truth.astype(np.uint8), affine)
         cases.append({"name": name, "structure": structure, "role": role, "image": image,
-                      "truth": truth_name, "init": init, "source": source, **extra})
+                      "truth": truth_name, "init": init, "source": source})
 
-    t1, aff = _load_nifti(os.path.join(templates, "ch2.nii.gz"))
-    write_nifti(os.path.join(out, "colin27_t1.nii.gz"), t1, aff)
-    bet, _ = _load_nifti(os.path.join(templates, "ch2bet.nii.gz"))
-    atlas, _ = _load_nifti(os.path.join(templates, "aal.nii.gz"))
+    t1, aff = _load(os.path.join(templates, "ch2.nii.gz"))
+    write_nifti(os.path.join(out, "colin27_t1.nii.gz"), t1.astype(np.uint8), aff)
+    bet, bet_aff = _load(os.path.join(templates, "ch2bet.nii.gz"))
+    atlas, atlas_aff = _load(os.path.join(templates, "aal.nii.gz"))
+    for other, other_aff in ((bet, bet_aff), (atlas, atlas_aff)):
+        if other.shape != t1.shape or not np.allclose(other_aff, aff):
+            raise SystemExit("fetch: ch2bet or aal is not on ch2's grid")
     sp = np.sqrt((aff[:3, :3] ** 2).sum(axis=0))
     brain = derive.brain_reference(bet)
     add("colin27-brain", "brain (ch2bet non-zero, largest component)", "colin27_t1.nii.gz",
         "colin27_brain.nii.gz", brain, aff, derive.sphere_click(brain, sp), MRICRON_SOURCE)
     for name, structure, labels, fill, role in AAL_CASES:
-        ref = derive.atlas_reference(atlas, labels, fill)
+        ref = derive.atlas_reference(np.rint(atlas), labels, fill)
         add(name, structure, "colin27_t1.nii.gz", name.replace("-", "_") + ".nii.gz", ref, aff,
             derive.sphere_click(ref, sp), MRICRON_SOURCE, role=role)
 
-    ct, ct_aff = _load_nrrd(os.path.join(lung, "lung2_image.nrrd"))
-    label, _ = _load_nrrd(os.path.join(lung, "lung2_label.nrrd"))
+    ct, ct_aff = _load(os.path.join(lung, "lung2_image.nrrd"))
+    label, _ = _load(os.path.join(lung, "lung2_label.nrrd"))
+    # The trachea is tracked along array axis 2, which must run from inferior to superior.
+    if int(np.argmax(np.abs(ct_aff[2, :3]))) != 2 or ct_aff[2, 2] <= 0:
+        raise SystemExit("fetch: lung2's third array axis is not inferior-to-superior")
     write_nifti(os.path.join(out, "lung2_ct.nii.gz"), ct.astype(np.int16), ct_aff)
     csp = np.sqrt((ct_aff[:3, :3] ** 2).sum(axis=0))
     tumour = label == 1
     add("lung2-tumour", "lung tumour (lung2_label == 1)", "lung2_ct.nii.gz", "lung2_tumour.nii.gz",
         tumour, ct_aff, derive.sphere_click(tumour, csp), LUNG_SOURCE)
-    trachea, slices = derive.trachea_reference(ct, csp)
+    trachea, slices = derive.trachea_reference(ct)
     add("lung2-trachea", f"trachea above the carina (air < {derive.AIR_HU:g} HU, axial slices "
         f"{slices[-1]}-{slices[0]})", "lung2_ct.nii.gz", "lung2_trachea.nii.gz", trachea, ct_aff,
         derive.tube_click(trachea, slices, csp), LUNG_SOURCE)
 
-    with open(os.path.join(out, "cases.json"), "w") as fh:
+    tmp = os.path.join(out, "cases.json.part")  # a running benchmark never reads half of it
+    with open(tmp, "w") as fh:
         json.dump(cases, fh, indent=1)
+    os.replace(tmp, os.path.join(out, "cases.json"))
     return cases
 
 
 def case_checksums(cache: str, cases: list[dict]) -> dict[str, str]:
+    """SHA-256 of every built image and reference (uncompressed), and of the clicks."""
     folder = os.path.join(cache, "cases")
     names = sorted({c["image"] for c in cases} | {c["truth"] for c in cases})
-    return {n: sha256(os.path.join(folder, n)) for n in names}
+    return {"clicks": _clicks_digest(cases), **{n: sha256(os.path.join(folder, n)) for n in names}}
+
+
+def _cached_cases_verified(cache: str, recorded: dict) -> list[dict] | None:
+    """The cached cases if every built file and the clicks match ``recorded``, else None."""
+    path = os.path.join(cache, "cases", "cases.json")
+    if not recorded.get("cases") or not os.path.exists(path):
+        return None
+    with open(path) as fh:
+        cases = json.load(fh)
+    try:
+        return cases if case_checksums(cache, cases) == recorded["cases"] else None
+    except OSError:
+        return None
 
 
 def load_cases(cache: str | None = None) -> list[dict[str, Any]]:
@@ -245,7 +270,11 @@ def main(argv: list[str] | None = None) -> int:
     if os.path.exists(CHECKSUMS) and not args.record:
         with open(CHECKSUMS) as fh:
             recorded = json.load(fh)
-    sources = fetch_sources(cache, recorded)
+    cases = None if args.record else _cached_cases_verified(cache, recorded)
+    if cases is not None:  # nothing to do: make bench-real* call this every time
+        print(f"fetch: {len(cases)} cases in {os.path.join(cache, 'cases')}, checksums verified")
+        return 0
+    sources = fetch_sources(cache, recorded, args.record)
     cases = build_cases(cache)
     built = case_checksums(cache, cases)
     if args.record:
