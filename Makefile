@@ -2,7 +2,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-real bench bench-real-data bench-real bench-real-quick clean FORCE
+.PHONY: install demo data test test-slow test-real bench bench-real-data bench-real bench-real-quick clean FORCE
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -13,10 +13,24 @@ $(STAMP): pyproject.toml setup.py segsnake/_sampling.c $(if $(wildcard segsnake/
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
+# The console script lives in the venv: say how to reach it (the README's quick start does too).
+ON_PATH = @echo "segsnake is installed in $(VENV)/bin: run 'source $(VENV)/bin/activate' to put it on \
+this shell's PATH, or call $(VENV)/bin/segsnake"
+
 install: $(STAMP)
+	$(ON_PATH)
 
 demo: $(STAMP)
-	$(VENV)/bin/segsnake demo
+	@$(VENV)/bin/segsnake demo
+	$(ON_PATH)
+
+# The synthetic sets configs/*.yaml run on (data_synthetic/sets.yaml), into out/synthetic/:
+# deterministic, not in git, volumes already there are kept. SETS="organ-blobs" makes only those
+# sets (the 20 small volumes of configs/blobs.yaml, seconds); all of them take minutes and ~1 GB.
+SETS ?=
+data: $(STAMP)
+	$(PY) data_synthetic/make_sets.py --jobs $(shell nproc 2>/dev/null || echo 1) \
+	    $(foreach set,$(SETS),--set $(set))
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -10,13 +10,16 @@ A batch file looks like::
       - name: t1-n3-rf20                # optional: defaults to the image's file name
         image: ../data/t1_n3_rf20.nii.gz
         truth: ../data/truth.nii.gz     # optional: adds dice/jaccard/hd95_mm/assd_mm
+        truth_label: 17                 # optional: the truth is a label map, compare with label 17
         scale: 1.5                      # per-case override of any option
 
 Guarantees, in the order they matter to someone running hundreds of scans:
 
 * The whole file is validated before anything runs (every case's merged options, duplicate names);
-  errors point at ``FILE:LINE:COL``. A missing or corrupt image is *not* a validation error: it is
-  that case's failure, recorded, and the rest go on.
+  errors point at ``FILE:LINE:COL``. Then every image, truth and prior it names must exist: the
+  missing ones are all listed, each with its line, and nothing runs
+  (:mod:`segsnake.batch_inputs`). A corrupt image is that case's failure, recorded, and the rest
+  go on.
 * Each case runs in its own process (one fresh process per case), so a crash, a segfault or the
   out-of-memory killer in one case takes only that case down.
 * ``results.jsonl`` (the source of truth) and ``results.csv`` in the output directory get one
@@ -31,8 +34,8 @@ Guarantees, in the order they matter to someone running hundreds of scans:
 Each case's outputs go to ``output_dir/<case name>/``. The function that runs one case is
 :func:`run_case` (which calls :func:`segsnake.runner.segment_file`); another can be named with
 ``runner="package.module:function"`` or ``"/path/to/file.py:function"``: it receives the case dict
-(``name``, ``image``, ``truth``, ``out_dir``, ``config``, ``overwrite``) and returns a JSON-able
-summary dict.
+(``name``, ``image``, ``truth``, ``truth_label``, ``out_dir``, ``config``, ``overwrite``) and
+returns a JSON-able summary dict.
 """
 
 from __future__ import annotations
@@ -46,7 +49,6 @@ import importlib
 import importlib.util
 import io
 import json
-import math
 import multiprocessing as mp
 import multiprocessing.connection
 import os
@@ -72,6 +74,7 @@ from segsnake.config import (
     suggest,
 )
 from segsnake.errors import ConfigError, InputError, OutputError, SegsnakeError
+from segsnake.jsonable import jsonable as _jsonable
 from segsnake.parallel import set_threads, threads as parallel_threads
 
 __all__ = [
@@ -93,14 +96,14 @@ RESULTS_CSV = "results.csv"
 LOCK_NAME = ".segsnake-batch.lock"
 
 TOP_KEYS = ("output_dir", "defaults", "cases")
-CASE_KEYS = ("name", "image", "truth")
+CASE_KEYS = ("name", "image", "truth", "truth_label")
 METRIC_KEYS = ("dice", "jaccard", "hd95_mm", "assd_mm", "volume_difference_rel")
 # Result column -> the summary keys it is read from, first found wins (segsnake.metrics names the
 # 95th-percentile Hausdorff distance "hausdorff95_mm").
 _SUMMARY_ALIASES = {"hd95_mm": ("hd95_mm", "hausdorff95_mm")}
 RESULT_COLUMNS = (
     "case", "status", *METRIC_KEYS, "iterations", "energy", "time_s", "exit_code", "error_type",
-    "error", "image", "truth", "out_dir", "host", "finished", "timings",
+    "error", "image", "truth", "truth_label", "out_dir", "host", "finished", "timings",
 )
 # A case name becomes a directory name: one safe path component.
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,127}$")
@@ -121,6 +124,9 @@ class BatchCase:
     truth: str | None
     config: SegmentConfig
     line: int | None = None
+    truth_label: int | None = None
+    # "FILE:LINE:COL" where each input file (image, truth, prior) is written, for messages.
+    where: dict[str, str] = dataclasses.field(default_factory=dict, compare=False)
 
     def to_job(self, output_dir: str | os.PathLike[str], *, overwrite: bool = False) -> dict[str, Any]:
         """The picklable dict a runner receives."""
@@ -128,6 +134,7 @@ class BatchCase:
             "name": self.name,
             "image": self.image,
             "truth": self.truth,
+            "truth_label": self.truth_label,
             "out_dir": str(Path(output_dir) / self.name),
             "config": self.config.to_dict(),
             "overwrite": bool(overwrite),
@@ -162,8 +169,8 @@ def _normalise_keys(d: LineDict) -> LineDict:
     return out
 
 
-def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[str] | None = None
-               ) -> BatchSpec:
+def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[str] | None = None,
+               check_files: bool = True) -> BatchSpec:
     """Read and validate a batch YAML file completely, before anything runs.
 
     Parameters
@@ -173,6 +180,9 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
     output_dir : str or path-like, optional
         Overrides the file's ``output_dir`` (relative to the current directory). Without either,
         results go to ``<file stem>-results`` beside the file.
+    check_files : bool
+        Also require every image, truth and prior to exist and be readable, as seen from this
+        machine (:func:`segsnake.batch_inputs.check_inputs`).
 
     Returns
     -------
@@ -183,6 +193,9 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
     ConfigError
         Syntax error, unknown key (with a suggestion), wrong type or range, duplicate case name,
         no cases. The message names ``FILE:LINE:COL`` of the first problem and counts the others.
+    InputError
+        A valid file whose images, truths or priors are missing (``check_files``): every one is
+        listed with its ``FILE:LINE:COL``.
     """
     p = Path(path)
     src = str(p)
@@ -270,6 +283,17 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
         if truth is not None and (not isinstance(truth, str) or not truth):
             errors.append(f"{locate(src, raw, 'truth')}: truth: must be a file path or null")
             bad = True
+        truth_label = raw.get("truth_label")
+        if truth_label is not None:
+            where_label = locate(src, raw, "truth_label")
+            if isinstance(truth_label, bool) or not isinstance(truth_label, int):
+                errors.append(f"{where_label}: truth_label: must be an integer (a label of the "
+                              f"truth's label map), got {truth_label!r}")
+                bad = True
+            elif truth is None:
+                errors.append(f"{where_label}: truth_label needs a 'truth:' (the label map it "
+                              "selects from)")
+                bad = True
         name = raw.get("name")
         name_key = "name" if "name" in raw else "image"
         if name is None and isinstance(image, str) and image:
@@ -309,12 +333,19 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
             continue
         config = dataclasses.replace(config, **resolve_paths({"prior": config.prior}, base)) \
             if config.prior else config
+        where = {"image": locate(src, raw, "image")}
+        if truth:
+            where["truth"] = locate(src, raw, "truth")
+        if config.prior:
+            where["prior"] = locate(src, merged, "prior")
         cases.append(BatchCase(
             name=name,
             image=os.path.abspath(base / Path(image).expanduser()),
             truth=os.path.abspath(base / Path(truth).expanduser()) if truth else None,
             config=config,
             line=raw.mark[0] if raw.mark else None,
+            truth_label=truth_label,
+            where=where,
         ))
 
     if errors:
@@ -329,7 +360,12 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
         more = f" (and {len(unique) - 1} more problem{'s' if len(unique) > 2 else ''})" \
             if len(unique) > 1 else ""
         raise ConfigError(unique[0] + more)
-    return BatchSpec(path=str(p.resolve()), output_dir=str(out), cases=tuple(cases))
+    spec = BatchSpec(path=str(p.resolve()), output_dir=str(out), cases=tuple(cases))
+    if check_files:
+        from segsnake.batch_inputs import check_inputs
+
+        check_inputs(spec, source=src)
+    return spec
 
 
 # --------------------------------------------------------------------------------------------------
@@ -343,8 +379,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     Parameters
     ----------
     case : dict
-        ``name``, ``image``, ``truth`` (or None), ``out_dir``, ``config`` (a
-        :meth:`SegmentConfig.to_dict`), ``overwrite``.
+        ``name``, ``image``, ``truth`` (or None), ``truth_label`` (or None), ``out_dir``,
+        ``config`` (a :meth:`SegmentConfig.to_dict`), ``overwrite``.
 
     Returns
     -------
@@ -355,6 +391,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
 
     config = SegmentConfig.from_mapping(case["config"], source=f"case {case['name']}")
     return segment_file(case["image"], case["out_dir"], config, truth_path=case.get("truth"),
+                        truth_label=case.get("truth_label"), truth_label_option="truth_label: N",
                         overwrite=bool(case.get("overwrite", False)))
 
 
@@ -422,36 +459,13 @@ def _one_line(text: str) -> str:
     return text if len(text) <= _MAX_ERROR_CHARS else text[: _MAX_ERROR_CHARS - 3] + "..."
 
 
-def _jsonable(value: Any) -> Any:
-    """Plain JSON values; non-finite floats become None (strict JSON has no NaN)."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, bool) or value is None or isinstance(value, str):
-        return value
-    if isinstance(value, int):
-        return int(value)
-    if isinstance(value, float):  # also numpy.float64, a float subclass: make it a plain float
-        return float(value) if math.isfinite(value) else None
-    if hasattr(value, "item") and callable(value.item):  # numpy scalars
-        try:
-            return _jsonable(value.item())
-        except Exception:  # noqa: BLE001 - an array that is not a scalar: fall through
-            pass
-    if hasattr(value, "tolist"):
-        return _jsonable(value.tolist())
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    return str(value)
-
-
 def _base_record(case: dict[str, Any]) -> dict[str, Any]:
     return {
         "case": case["name"],
         "status": None,
         "image": case.get("image"),
         "truth": case.get("truth"),
+        "truth_label": case.get("truth_label"),
         "out_dir": case.get("out_dir"),
         "host": socket.gethostname(),
     }
@@ -520,7 +534,8 @@ def execute_case(runner: str, case: dict[str, Any], sys_path: list[str] | None =
             for entry in sys_path:
                 if entry not in sys.path:
                     sys.path.append(entry)
-        # Checked here (not at validation): a missing file is this case's failure, not the batch's.
+        # Checked again here: a file removed since validation, or one a Dask worker does not see,
+        # is this case's failure, not the batch's.
         for role in ("image", "truth"):
             path = case.get(role)
             if path is not None and not os.path.exists(path):
@@ -934,8 +949,8 @@ def _previous(records: list[dict[str, Any]], names: set[str]) -> tuple[list[dict
 def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None = None,
               scheduler: str | None = None, resume: bool = False, overwrite: bool = False,
               runner: str | Callable[..., Any] | None = None, case_timeout: float | None = None,
-              quiet: bool = True, progress_stream: Any = None, connect_timeout: float = 30.0
-              ) -> BatchReport:
+              quiet: bool = True, progress_stream: Any = None, connect_timeout: float = 30.0,
+              on_warning: Callable[[str, str], None] | None = None) -> BatchReport:
     """Run every case of a batch and record each result as it finishes.
 
     Parameters
@@ -962,6 +977,10 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
         Where progress goes (default stderr).
     connect_timeout : float
         Seconds to wait for the Dask scheduler to answer.
+    on_warning : callable(case name, warning), optional
+        Called with each warning of a finished case (its summary's ``warnings``: NaN voxels
+        filled, a truth that looks like a label map), as the case finishes; they are also in
+        ``results.jsonl``.
 
     Returns
     -------
@@ -1023,6 +1042,12 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
         def on_record(record: dict[str, Any]) -> None:
             record = _jsonable(record)
             writer.append(record)
+            summary = record.get("summary")
+            case_warnings = summary.get("warnings") if isinstance(summary, dict) else None
+            if on_warning is not None and isinstance(case_warnings, list):
+                for text in case_warnings:
+                    bar.clear_line()
+                    on_warning(record["case"], str(text))
             if record.get("status") == "ok":
                 counts["ok"] += 1
                 note = f"{record['case']} ok"

@@ -1,20 +1,24 @@
 """The ``segsnake`` command: a thin dispatcher over :mod:`segsnake.commands`.
 
 Each sub-command lives in its own module under ``segsnake/commands`` and exposes
-``add_parser(subparsers)`` and ``run(args) -> int``. This module only parses,
-dispatches, and maps :class:`segsnake.errors.SegsnakeError` to a one-line
-message and its exit code (``--debug`` re-raises for the traceback).
+``add_parser(subparsers)`` and ``run(args) -> int``. This module only parses, dispatches, and
+turns every way a run can end into an exit code and at most one line on stderr (and, with
+``--json``, an error object on stdout): a :class:`segsnake.errors.SegsnakeError` gives its
+message and documented code, Ctrl-C or SIGTERM 130, a closed stdout (``| head``) 141 in silence,
+anything unexpected 1 with a one-line description. ``--debug`` re-raises for the traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 import threading
-from typing import Sequence
+from typing import Any, Sequence
 
+from segsnake import __version__
 from segsnake.errors import SegsnakeError
 
 DESCRIPTION = ("Segment 3D structures in medical volumes with smooth spline snakes "
@@ -23,17 +27,38 @@ DESCRIPTION = ("Segment 3D structures in medical volumes with smooth spline snak
 # Order is the order shown in ``segsnake --help``.
 COMMANDS = ("segment", "demo", "phantom", "evaluate", "batch", "shape", "shape-model")
 
+# Exit codes decided here rather than by an error class (the README's table lists every code).
+EXIT_UNEXPECTED = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+# A reader that closed our stdout (``segsnake evaluate ... | head -1``): the code of a tool that
+# the shell saw die of SIGPIPE, as ``seq``, ``cat`` or ``git`` do in the same place.
+EXIT_CLOSED_PIPE = 128 + signal.SIGPIPE
+
+
+class UsageError(SegsnakeError):
+    """A command line argparse cannot parse (unknown flag, missing argument)."""
+
+    exit_code = EXIT_USAGE
+
+    def __init__(self, message: str, command: str | None) -> None:
+        super().__init__(message)
+        self.command = command
+
 
 class _Parser(argparse.ArgumentParser):
-    """argparse exits with 2 on usage errors already; keep its one-line message."""
+    """argparse, but a usage error is raised (so that ``--json`` can report it) and not printed."""
 
-    def error(self, message: str) -> None:  # pragma: no cover - exercised via CLI tests
-        self.exit(2, f"segsnake: error: {message}\n")
+    def error(self, message: str) -> None:  # type: ignore[override]
+        words = self.prog.split()
+        raise UsageError(message, words[1] if len(words) > 1 else None)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``segsnake`` parser with every sub-command that is installed."""
     parser = _Parser(prog="segsnake", description=DESCRIPTION,
                      epilog="Run 'segsnake COMMAND --help' for the options of a command.")
+    parser.add_argument("--version", action="version", version=f"segsnake {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
@@ -55,28 +80,112 @@ def _terminate(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _terminate)
+def _mute_output() -> None:
+    """Point stdout and stderr at /dev/null: their reader is gone, and the interpreter's final
+    flush must not fail again (Python would print 'Exception ignored ... BrokenPipeError')."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
     try:
-        return int(args.func(args) or 0)
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                fd = stream.fileno()
+            except (AttributeError, OSError, ValueError):  # a replaced stream (tests): no fd
+                continue
+            os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
+
+
+def _report(command: str | None, want_json: bool, code: int, message: str,
+            exc: BaseException | None = None) -> int:
+    """One line on stderr and, with ``--json``, the error object on stdout; returns ``code``."""
+    from segsnake.commands.reporting import error_object, print_json
+
+    where = f"segsnake {command}" if command else "segsnake"
+    try:
+        if want_json:
+            seg = exc if isinstance(exc, SegsnakeError) else None
+            print_json(error_object(
+                command, code, message, file=seg.file if seg else None,
+                line=seg.line if seg else None,
+                kind=type(exc).__name__ if exc is not None else None,
+                details=seg.details if seg else None))
+            sys.stdout.flush()
+        sys.stderr.write(f"{where}: error: {message}\n")
+        sys.stderr.flush()
+    except BrokenPipeError:
+        _mute_output()
+    return code
+
+
+def main(argv: Sequence[str] | None = None, *,
+         parser: argparse.ArgumentParser | None = None) -> int:
+    """Run ``segsnake ARGV`` and return its exit code (README, "Exit codes and errors").
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        The arguments (default ``sys.argv[1:]``).
+    parser : argparse.ArgumentParser, optional
+        Another parser (default :func:`build_parser`): its sub-commands set ``func``, ``command``
+        and ``debug`` as the real ones do (tests give one whose command misbehaves).
+
+    Returns
+    -------
+    int
+        The exit code.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # Known before parsing, so that a command line argparse refuses is reported in JSON too.
+    state: dict[str, Any] = {"command": None, "json": "--json" in argv, "debug": False}
+    try:
+        if parser is None:
+            parser = build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit:  # --help, --version: flushed here, where a closed pipe is handled
+            sys.stdout.flush()
+            raise
+        state.update(command=args.command, json=bool(getattr(args, "json", False)),
+                     debug=args.debug)
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, _terminate)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # here, where a closed pipe can still be handled
+        return code
+    except BrokenPipeError:
+        _mute_output()
+        return EXIT_CLOSED_PIPE
+    except UsageError as exc:
+        help_command = f"segsnake {exc.command} --help" if exc.command else "segsnake --help"
+        return _report(exc.command, state["json"], exc.exit_code, f"{exc} (see '{help_command}')",
+                       exc)
     except SegsnakeError as exc:
-        if args.debug:
+        if state["debug"]:
             raise
-        print(f"segsnake {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return _report(state["command"], state["json"], exc.exit_code, str(exc), exc)
     except KeyboardInterrupt:
-        print(f"segsnake {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except MemoryError:
-        if args.debug:
+        try:
+            if state["json"]:
+                from segsnake.commands.reporting import error_object, print_json
+
+                print_json(error_object(state["command"], EXIT_INTERRUPTED, "interrupted"))
+                sys.stdout.flush()
+            where = f"segsnake {state['command']}" if state["command"] else "segsnake"
+            sys.stderr.write(f"{where}: interrupted\n")
+        except BrokenPipeError:
+            _mute_output()
+        return EXIT_INTERRUPTED
+    except MemoryError as exc:
+        if state["debug"]:
             raise
-        print(f"segsnake {args.command}: error: out of memory (crop or resample the image first)",
-              file=sys.stderr)
-        return 3
+        return _report(state["command"], state["json"], 3,
+                       "out of memory (crop or resample the image first)", exc)
+    except Exception as exc:  # noqa: BLE001 - the promise: never a traceback without --debug
+        if state["debug"]:
+            raise
+        return _report(state["command"], state["json"], EXIT_UNEXPECTED,
+                       f"unexpected error: {type(exc).__name__}: {' '.join(str(exc).split())} "
+                       f"(a bug: run with --debug for the traceback and please report it)", exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

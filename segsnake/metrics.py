@@ -48,6 +48,7 @@ __all__ = [
     "hausdorff",
     "evaluate_masks",
     "load_mask_pair",
+    "load_image_pair",
     "METRIC_KEYS",
 ]
 
@@ -376,6 +377,46 @@ def _load(path: Path) -> tuple[NDArray, NDArray[np.float64], tuple[float, ...]]:
     return vol.data, np.asarray(vol.affine, dtype=float), tuple(vol.spacing)
 
 
+def load_image_pair(
+    pred_path: str | Path, truth_path: str | Path, tol: float = 1e-4
+) -> tuple[NDArray, NDArray, tuple[float, float, float]]:
+    """Read a predicted mask and a truth image that must share one grid, voxel values as stored.
+
+    Parameters
+    ----------
+    pred_path, truth_path : path
+        Mask or label images (NIfTI).
+    tol : float
+        Largest allowed difference between the two affines' entries.
+
+    Returns
+    -------
+    (pred, truth, spacing)
+        The two arrays (float32, values kept: a label map keeps its labels) and the voxel size
+        in mm.
+
+    Raises
+    ------
+    InputError
+        A file cannot be read, is not 3D, contains non-finite values, or the two grids differ
+        (shape, or affine beyond ``tol``); the message names both files.
+    """
+    p, t = Path(pred_path), Path(truth_path)
+    a, aff_a, sp_a = _load(p)
+    b, aff_b, _ = _load(t)
+    if a.shape != b.shape:
+        raise InputError(
+            f"{p} and {t} are on different grids: shape {a.shape} vs {b.shape}", file=str(t)
+        )
+    err = float(np.max(np.abs(aff_a - aff_b)))
+    if err > tol:
+        raise InputError(
+            f"{p} and {t} are on different grids: affines differ by up to {err:.3g} "
+            f"(tolerance {tol:g})", file=str(t)
+        )
+    return a, b, tuple(float(s) for s in sp_a[:3])  # type: ignore[return-value]
+
+
 def load_mask_pair(
     pred_path: str | Path, truth_path: str | Path, tol: float = 1e-4
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], tuple[float, float, float]]:
@@ -396,20 +437,7 @@ def load_mask_pair(
     Raises
     ------
     InputError
-        A file cannot be read, is not 3D, contains non-finite values, or the two grids differ
-        (shape, or affine beyond ``tol``); the message names both files.
+        As :func:`load_image_pair`.
     """
-    p, t = Path(pred_path), Path(truth_path)
-    a, aff_a, sp_a = _load(p)
-    b, aff_b, _ = _load(t)
-    if a.shape != b.shape:
-        raise InputError(
-            f"{p} and {t} are on different grids: shape {a.shape} vs {b.shape}"
-        )
-    err = float(np.max(np.abs(aff_a - aff_b)))
-    if err > tol:
-        raise InputError(
-            f"{p} and {t} are on different grids: affines differ by up to {err:.3g} "
-            f"(tolerance {tol:g})"
-        )
-    return a != 0, b != 0, tuple(float(s) for s in sp_a[:3])  # type: ignore[return-value]
+    a, b, spacing = load_image_pair(pred_path, truth_path, tol)
+    return a != 0, b != 0, spacing

@@ -105,6 +105,13 @@ class ProgressBar:
             self._draw("")
         self.stream.flush()
 
+    def clear_line(self) -> None:
+        """Erase a drawn bar so that someone else can write a line; the next update redraws it."""
+        if self.mode == "bar" and self._drawn:
+            self.stream.write("\r\033[K")
+            self.stream.flush()
+            self._drawn = False
+
     def close(self) -> None:
         """Finish the bar line (a newline), so later output starts on a fresh line."""
         if self.mode == "bar" and self._drawn:

@@ -79,6 +79,7 @@ def _with_image_name(exc: Exception, image_path: str) -> None:
 
 
 def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | None = None,
+                 truth_label: int | None = None, truth_label_option: str = "a truth label",
                  overwrite: bool = False,
                  progress: Callable[[str, float], None] | None = None) -> dict[str, Any]:
     """Segment ``image_path`` with ``config`` and write the outputs into ``out_dir``.
@@ -93,6 +94,11 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         The ``segment`` options.
     truth_path : str, optional
         A truth mask on the image's grid: Dice, Jaccard and surface distances are added.
+    truth_label : int, optional
+        The truth is a label map: compare with its voxels equal to ``truth_label`` only (default:
+        every non-zero voxel, with a warning when the truth holds more than two values).
+    truth_label_option : str
+        How the caller's user gives ``truth_label`` (a flag, a YAML key), named by that warning.
     overwrite : bool
         Replace existing outputs.
     progress : callable(stage, fraction), optional
@@ -126,8 +132,9 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     t0 = time.perf_counter()
     volume = load_volume(image_path, volume_index=config.volume, nan=config.nan)
     truth = None
+    truth_warnings: list[str] = []
     if truth_path is not None:
-        truth = _load_truth(truth_path, volume)
+        truth, truth_warnings = _load_truth(truth_path, volume, truth_label, truth_label_option)
     load_s = time.perf_counter() - t0
 
     extra = None
@@ -150,12 +157,13 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         "energy": result.energy,
         "iterations": result.iterations,
         "polarity": result.polarity,
-        "warnings": list(volume.warnings) + [
+        "warnings": list(volume.warnings) + truth_warnings + [
             f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
             f"its order (iteration or round cap reached): the surface may be less accurate"
             for i, h in enumerate(result.history) if not h.get("quadrature_resolved", True)],
     }
     if truth is not None:
+        summary["truth_label"] = truth_label
         metrics = evaluate_masks(result.mask, truth, volume.spacing)
         summary.update({k: (float(v) if np.isfinite(v) else None) for k, v in metrics.items()})
     t0 = time.perf_counter()
@@ -168,14 +176,21 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     return summary
 
 
-def _load_truth(path: str, volume) -> np.ndarray:
+def _load_truth(path: str, volume, label: int | None, truth_label_option: str
+                ) -> tuple[np.ndarray, list[str]]:
+    """The truth's foreground on the image's grid (one label of a label map) and its warnings."""
     from segsnake.io import load_volume
+    from segsnake.labels import label_map_warning, truth_foreground
 
     truth = load_volume(path, bytes_per_voxel=None)
     if truth.shape != volume.shape or not np.allclose(truth.affine, volume.affine, atol=1e-4):
         raise InputError(f"{path}: truth mask is not on the grid of {volume.path} "
                          f"(shape {truth.shape} vs {volume.shape} or a different affine)")
-    return truth.data > 0.5
+    mask, values = truth_foreground(truth.data, label, path)
+    warnings = []
+    if values is not None:
+        warnings.append(label_map_warning(path, values, truth_label_option))
+    return mask, warnings
 
 
 def _prior_energy(config):

@@ -48,7 +48,7 @@ def otsu_runner(case: dict) -> dict:
     """Segment by Otsu's threshold; behaves like the pipeline's contract (summary dict, errors).
 
     Case names steer failure modes: ``crash*`` dies by SIGSEGV, ``slow*`` sleeps first,
-    ``hang*`` sleeps for a minute.
+    ``hang*`` sleeps for a minute; ``warn*`` succeeds with a warning in its summary.
     """
     from skimage.filters import threshold_otsu
 
@@ -72,7 +72,8 @@ def otsu_runner(case: dict) -> dict:
     nib.save(nib.Nifti1Image(mask, img.affine), tmp)
     os.replace(tmp, out)
     summary = {"timings": {"threshold_s": 0.0}, "iterations": int(cfg.m1 or 0),
-               "outputs": {"mask": str(out)}, "pid": os.getpid()}
+               "outputs": {"mask": str(out)}, "pid": os.getpid(),
+               "warnings": [f"{name} looks odd"] if name.startswith("warn") else []}
     if case["truth"]:
         truth = np.asarray(nib.load(case["truth"]).dataobj) > 0
         inter = np.count_nonzero(mask.astype(bool) & truth)
@@ -140,6 +141,7 @@ def test_load_batch_merges_defaults_overrides_and_paths(tmp_path, images):
         good("a", 0),
         "  - image: IMG/ball1.nii.gz\n    m1: 12\n    max-iter: 40\n    prior: ref.json\n",
     ], defaults="  m1: 8\n  scale: 1.5\n")
+    (tmp_path / "ref.json").write_text("{}")  # only its existence is checked here
     spec = load_batch(path)
     assert spec.output_dir == str(tmp_path / "out")
     a, b = spec.cases
@@ -178,6 +180,63 @@ def test_validation_errors_point_at_the_line_and_nothing_runs(tmp_path, capsys, 
     assert not (tmp_path / "out").exists()
 
 
+def test_missing_inputs_are_listed_with_their_lines_before_anything_runs(tmp_path, images,
+                                                                         capsys):
+    """Issue 17: a batch whose files were never made stops at once, every missing one listed."""
+    path = batch_file(tmp_path, images, [
+        good("a", 0),                                                        # lines 6-8: all there
+        "  - name: b\n    image: IMG/nope.nii.gz\n",                          # line 10: image
+        good("c", 1).replace("ball1_truth", "nothing"),                      # line 13: truth
+        "  - name: d\n    image: IMG/ball2.nii.gz\n    prior: ref2.json\n",   # line 16: prior
+    ], defaults="  m1: 8\n  prior: ref.json\n")                            # line 4: shared prior
+    before = sorted(tmp_path.iterdir())
+    assert main(["batch", str(path), "--runner", RUNNER]) == 3
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err.splitlines() == [
+        f"segsnake batch: error: {path}: 4 input files of the batch cannot be read "
+        "(nothing was run):",
+        f"  {path}:4:3: prior {tmp_path / 'ref.json'}: no such file",   # once for its 3 cases
+        f"  {path}:10:5: image {images / 'nope.nii.gz'}: no such file",
+        f"  {path}:13:5: truth {images / 'nothing.nii.gz'}: no such file",
+        f"  {path}:16:5: prior {tmp_path / 'ref2.json'}: no such file",
+    ]
+    assert sorted(tmp_path.iterdir()) == before  # no output directory, nothing ran
+
+    assert main(["batch", str(path), "--runner", RUNNER, "--json"]) == 3
+    record = json.loads(capsys.readouterr().out)
+    assert (record["status"], record["code"], record["file"]) == ("error", 3, str(path))
+    assert [(m["line"], m["role"], m["case"]) for m in record["missing"]] == [
+        (4, "prior", "a"), (10, "image", "b"), (13, "truth", "c"), (16, "prior", "d")]
+    # all there: validation passes (the YAML's own errors come first and keep exit 2)
+    (tmp_path / "ref.json").write_text("{}")
+    (tmp_path / "ref2.json").write_text("{}")
+    ok = batch_file(tmp_path, images, [good("a", 0), good("c", 1)], defaults="  m1: 8\n")
+    assert [c.name for c in load_batch(ok).cases] == ["a", "c"]
+    bad = batch_file(tmp_path, images, ["  - name: b\n    image: IMG/nope.nii.gz\n    m1: 2\n"])
+    with pytest.raises(ConfigError, match=":7:5: m1: must be >= 4"):
+        load_batch(bad)
+
+
+def test_truth_label_is_a_case_key_checked_with_its_line(tmp_path, images):
+    path = batch_file(tmp_path, images, [good("a", 0, "    truth_label: 1\n")])
+    case = load_batch(path).cases[0]
+    assert case.truth_label == 1 and case.to_job(tmp_path)["truth_label"] == 1
+    for extra, where, fragment in (
+            ("    truth_label: one\n", "8:5", "truth_label: must be an integer"),
+            ("    truth_label: 2.5\n", "8:5", "truth_label: must be an integer")):
+        path = batch_file(tmp_path, images, [good("a", 0, extra)])
+        with pytest.raises(ConfigError, match=f"runs.yaml:{where}: {fragment}"):
+            load_batch(path)
+    path = batch_file(tmp_path, images, ["  - name: a\n    image: IMG/ball0.nii.gz\n"
+                                         "    truth_label: 3\n"])
+    with pytest.raises(ConfigError, match=r"runs.yaml:7:5: truth_label needs a 'truth:'"):
+        load_batch(path)
+    path = batch_file(tmp_path, images, [good("a", 0)], defaults="  truth_label: 3\n")
+    with pytest.raises(ConfigError, match=r"runs.yaml:3:3: 'truth_label' belongs to a case"):
+        load_batch(path)
+
+
 def test_all_problems_are_counted_and_top_level_keys_checked(tmp_path):
     path = tmp_path / "runs.yaml"
     path.write_text("outptu_dir: o\ncases:\n  - {image: a.nii, m1: 1}\n  - {image: b.nii, tol: 0}\n")
@@ -212,13 +271,13 @@ def test_broken_cases_are_recorded_and_the_rest_is_done(tmp_path, images, capsys
         good("nothruth", 2).replace("ball2_truth", "ball9_truth"),
         good("good2", 2, "    m1: 12\n"),
     ])
-    code = main(["batch", str(path), "--runner", RUNNER, "--workers", "2"])
-    out, err = capsys.readouterr()
-    assert code == 6
+    # Files missing when the cases run (removed since validation, or not seen by a Dask worker)
+    # are those cases' failures: here they are missing from the start, so validation, which
+    # would refuse the batch (test_missing_inputs_are_listed...), is told not to look.
+    report = run_batch(load_batch(path, check_files=False), runner=RUNNER, workers=2)
     results_csv = tmp_path / "out" / "results.csv"
-    assert err.strip().splitlines()[-1] == (
-        f"segsnake batch: error: 5 of 8 cases failed (see {results_csv})")
-    assert out.strip() == f"8 cases: 3 ok, 5 failed (8 run); results in {results_csv}"
+    assert (report.total, report.ok, report.failed) == (8, 3, 5)
+    assert sorted(report.failed_cases) == ["corrupt", "crash", "missing", "nothruth", "outside"]
 
     records = {r["case"]: r for r in read_results(tmp_path / "out" / "results.jsonl")}
     rows = {r["case"]: r for r in csv_rows(results_csv)}
@@ -244,6 +303,26 @@ def test_broken_cases_are_recorded_and_the_rest_is_done(tmp_path, images, capsys
     for r in records.values():
         assert "\n" not in (r["error"] or "")
     assert list(csv_rows(results_csv)[0]) == list(RESULT_COLUMNS)
+
+
+def test_failed_cases_exit_6_with_the_counts_and_warnings_reach_stderr(tmp_path, images, capsys):
+    path = batch_file(tmp_path, images, [
+        good("good0", 0), "  - name: corrupt\n    image: IMG/corrupt.nii.gz\n", good("warn1", 1)])
+    assert main(["batch", str(path), "--runner", RUNNER, "--workers", "2"]) == 6
+    out, err = capsys.readouterr()
+    results_csv = tmp_path / "out" / "results.csv"
+    assert out == f"3 cases: 2 ok, 1 failed (3 run); results in {results_csv}\n"
+    assert "segsnake batch: warning: case warn1: warn1 looks odd\n" in err
+    assert err.splitlines()[-1] == f"segsnake batch: error: 1 of 3 cases failed (see {results_csv})"
+    assert main(["batch", str(path), "--runner", RUNNER, "--overwrite", "--json"]) == 6
+    out, err = capsys.readouterr()
+    record = json.loads(out)  # one object: the error, with the counts
+    assert (record["code"], record["total"], record["ok"], record["failed_cases"]) == \
+        (6, 3, 2, ["corrupt"])
+    assert record["file"] == str(results_csv) and "warn1 looks odd" in err
+    assert main(["batch", str(path), "--runner", RUNNER, "--overwrite", "--quiet"]) == 6
+    out, err = capsys.readouterr()
+    assert out == "" and "warn1 looks odd" in err  # warnings even with --quiet
 
 
 def test_sigkill_midway_then_resume_records_every_case_exactly_once(tmp_path, images):
@@ -353,11 +432,13 @@ def test_dask_local_cluster_gives_the_same_results_as_the_pool(tmp_path, images)
     distributed = pytest.importorskip("distributed")
     cases = [good("a", 0), good("b", 1, "    m1: 5\n"), good("c", 2),
              "  - name: missing\n    image: IMG/nope.nii.gz\n", good("outside", 0, "    center: [-1, 2, 2]\n")]
-    pool_spec = load_batch(batch_file(tmp_path, images, cases), output_dir=tmp_path / "pool")
+    pool_spec = load_batch(batch_file(tmp_path, images, cases), output_dir=tmp_path / "pool",
+                           check_files=False)  # "missing" fails at run time, on either executor
     pool = run_batch(pool_spec, runner=RUNNER, workers=2)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
                                   dashboard_address=None) as cluster:
-        dask_spec = load_batch(batch_file(tmp_path, images, cases), output_dir=tmp_path / "dask")
+        dask_spec = load_batch(batch_file(tmp_path, images, cases), output_dir=tmp_path / "dask",
+                               check_files=False)
         via_dask = run_batch(dask_spec, runner=RUNNER, scheduler=cluster.scheduler_address)
     assert (pool.ok, pool.failed) == (via_dask.ok, via_dask.failed) == (3, 2)
 
@@ -401,7 +482,8 @@ def test_progress_bar_draws_on_a_terminal_and_logs_otherwise():
 
 def test_shipped_configs_are_valid_and_match_the_synthetic_sets():
     root = HERE.parent.parent
-    specs = {name: load_batch(root / "configs" / f"{name}.yaml")
+    # check_files=False: the volumes exist only after `make data`
+    specs = {name: load_batch(root / "configs" / f"{name}.yaml", check_files=False)
              for name in ("brain-sweep", "cylinder-table", "blobs")}
     assert {k: len(v.cases) for k, v in specs.items()} == {"brain-sweep": 30, "cylinder-table": 6,
                                                            "blobs": 20}
@@ -438,15 +520,24 @@ def test_end_to_end_with_the_real_pipeline(tmp_path):
         assert main(["phantom", "ball", "--out", str(tmp_path / f"ph{s}"), "--seed", str(s)]) == 0
         # the phantom's suggested start, perturbed (issue 14)
         init = perturbed_init(json.loads((tmp_path / f"ph{s}" / "phantom.json").read_text()), start)
-        cases += (f"  - name: ph{s}\n    image: ph{s}/image.nii.gz\n    truth: ph{s}/truth.nii.gz\n"
+        truth = f"ph{s}/truth.nii.gz"
+        if s == 1:  # ph1's truth is a label map: the ball is label 5, a corner cube label 9
+            img = nib.load(tmp_path / truth)
+            labels = np.asarray(img.dataobj).astype(np.int16) * 5
+            labels[:8, :8, :8] = 9
+            nib.save(nib.Nifti1Image(labels, img.affine), tmp_path / "ph1" / "labels.nii.gz")
+            truth = "ph1/labels.nii.gz\n    truth_label: 5"
+        cases += (f"  - name: ph{s}\n    image: ph{s}/image.nii.gz\n    truth: {truth}\n"
                   f"    center: {init['center']}\n    radii: {init['radii']}\n")
     (tmp_path / "runs.yaml").write_text(f"output_dir: out\ndefaults:\n  shape: sphere\ncases:\n{cases}")
     assert main(["batch", str(tmp_path / "runs.yaml"), "-j", "2", "-q"]) == 0
     records = read_results(tmp_path / "out" / "results.jsonl")
     assert sorted(r["case"] for r in records) == ["ph0", "ph1"]
     rows = {r["case"]: r for r in csv_rows(tmp_path / "out" / "results.csv")}
+    assert [r["truth_label"] for r in sorted(records, key=lambda r: r["case"])] == [None, 5]
     for r in records:
-        assert r["status"] == "ok" and r["dice"] > 0.95, r
+        assert r["status"] == "ok" and r["dice"] > 0.95, r  # ph1: against label 5 only
+        assert r["summary"]["warnings"] == []
         assert r["hd95_mm"] == r["summary"]["hausdorff95_mm"] and 0 <= r["hd95_mm"] < 2.0
         assert float(rows[r["case"]]["dice"]) == r["dice"] and rows[r["case"]]["assd_mm"]
         assert r["timings"]["total_s"] > 0 and Path(r["outputs"]["mask"]).is_file()

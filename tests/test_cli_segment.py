@@ -567,11 +567,13 @@ def test_demo(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setattr(phantoms, "make_phantom", small)
     out = tmp_path / "demo"
-    rc = main(["demo", "--kind", "ball", "--noise", "0.1", "--out", str(out), "--quiet"])
+    rc = main(["demo", "--kind", "ball", "--noise", "0.1", "--out", str(out), "--json"])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
-    dice = float(cap.out.split("Dice ")[1].split(",")[0])
-    assert dice >= 0.95
+    assert cap.err == ""  # --json: no progress
+    record = json.loads(cap.out)
+    dice = record["summary"]["dice"]
+    assert dice >= 0.95 and record["out"] == str(out)
     assert sorted(os.listdir(out / "segmentation")) == sorted(OUTPUT_NAMES)
     assert sorted(os.listdir(out / "phantom")) == ["image.nii.gz", "phantom.json", "truth.nii.gz"]
     summary = json.loads((out / "segmentation" / "snake.json").read_text())["summary"]
@@ -585,6 +587,7 @@ def test_demo(tmp_path, monkeypatch, capsys):
     rc = main(["demo", "--kind", "ball", "--noise", "0.1", "--out", str(out), "--quiet",
                "--overwrite"])
     assert rc == 0
+    assert capsys.readouterr().out == ""  # --quiet: no result lines either, as in `segment`
 
 
 def test_sigterm_leaves_no_partial_output(tmp_path):

@@ -204,8 +204,11 @@ def test_shape_command_refuses_bad_values_and_existing_outputs(tmp_path, capsys)
     assert "already exists" in capsys.readouterr().err and out.read_bytes() == before
     assert main(["shape", "ellipsoid", "--radii", "1", "2", "3", "--out", str(out),
                  "--overwrite"]) == 0
-    with pytest.raises(SystemExit):
-        main(["shape", "ellipsoid", "--out", str(out)])  # --radii is required: usage error
+    capsys.readouterr()
+    # --radii is required: a usage error, exit 2 with one line (main returns it, issue 17)
+    assert main(["shape", "ellipsoid", "--out", str(out)]) == 2
+    assert capsys.readouterr().err == ("segsnake shape: error: the following arguments are "
+                                       "required: --radii (see 'segsnake shape --help')\n")
 
 
 def _write_snakes(tmp_path, shapes):

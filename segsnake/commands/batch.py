@@ -7,21 +7,23 @@ appended and fsynced as cases finish, ``--resume``) are described in :mod:`segsn
 from __future__ import annotations
 
 import argparse
-import sys
 
 from segsnake.commands import positive_int
+from segsnake.commands.reporting import add_output_options, emit, progress_off, warn
 from segsnake.errors import BatchError, ConfigError
 
 HELP = "run many segmentations from a YAML file (local process pool or a Dask cluster)"
 
 EPILOG = """\
-The YAML file has 'cases:' (each with 'image:', optional 'name:' and 'truth:', and any
-'segment' option as an override), optional 'defaults:' (segment options for every case) and
-'output_dir:' (relative to the YAML file). Results are appended to OUT/results.csv and
-OUT/results.jsonl as cases finish; each case's outputs go to OUT/<case name>/.
+The YAML file has 'cases:' (each with 'image:', optional 'name:', 'truth:' and 'truth_label:',
+and any 'segment' option as an override), optional 'defaults:' (segment options for every case)
+and 'output_dir:' (relative to the YAML file). Before any case runs, the file is validated and
+every image, truth and prior it names must exist (the missing ones are listed with their line).
+Results are appended to OUT/results.csv and OUT/results.jsonl as cases finish; each case's outputs
+go to OUT/<case name>/.
 --resume keeps the cases recorded 'ok' and runs all others again, failed ones included.
-Exit codes: 0 all cases ok, 2 invalid batch file, 5 results/outputs not writable,
-6 some cases failed (see results.csv).
+Exit codes: 0 all cases ok, 2 invalid batch file, 3 images, truths or priors missing,
+5 results/outputs not writable, 6 some cases failed (see results.csv).
 """
 
 
@@ -52,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="output directory (overrides output_dir in the YAML file)")
     parser.add_argument("--case-timeout", type=_positive_float, default=None, metavar="SECONDS",
                         help="stop a case that runs longer and record it as failed (local runs)")
-    parser.add_argument("--quiet", "-q", action="store_true", help="no progress, no summary")
+    add_output_options(parser)
     # For plug-ins and tests: another case function, 'module:function' or 'file.py:function'.
     parser.add_argument("--runner", default=None, help=argparse.SUPPRESS)
     parser.set_defaults(func=run)
@@ -72,13 +74,20 @@ def run(args: argparse.Namespace) -> int:
     spec = load_batch(args.runs, output_dir=args.out)  # validates everything before any work
     report = run_batch(spec, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
                        overwrite=args.overwrite, runner=args.runner,
-                       case_timeout=args.case_timeout, quiet=args.quiet)
-    if not args.quiet:
-        ran = report.total - report.skipped
-        skipped = f", {report.skipped} already done" if report.skipped else ""
-        print(f"{report.total} cases: {report.ok} ok, {report.failed} failed "
-              f"({ran} run{skipped}); results in {report.results_csv}", file=sys.stdout)
+                       case_timeout=args.case_timeout, quiet=progress_off(args),
+                       on_warning=lambda case, text: warn("batch", [f"case {case}: {text}"]))
+    counts = {"total": report.total, "ok": report.ok, "failed": report.failed,
+              "skipped": report.skipped, "failed_cases": report.failed_cases,
+              "output_dir": report.output_dir, "results_csv": report.results_csv,
+              "results_jsonl": report.results_jsonl}
+    ran = report.total - report.skipped
+    skipped = f", {report.skipped} already done" if report.skipped else ""
+    lines = [f"{report.total} cases: {report.ok} ok, {report.failed} failed ({ran} run{skipped}); "
+             f"results in {report.results_csv}"]
     if report.failed:
+        if not args.json:  # with --json the error object carries the counts instead
+            emit(args, counts, lines)
         raise BatchError(f"{report.failed} of {report.total} cases failed "
-                         f"(see {report.results_csv})")
+                         f"(see {report.results_csv})", file=report.results_csv, details=counts)
+    emit(args, counts, lines)
     return 0

@@ -1,18 +1,20 @@
-"""``segsnake evaluate PRED TRUTH [--json]``: compare a mask with a truth mask.
+"""``segsnake evaluate PRED TRUTH [--label N] [--json]``: compare a mask with a truth mask.
 
 Prints Dice, Jaccard, volumes and surface distances in mm (definitions in
-:mod:`segsnake.metrics`). The two masks must be on the same grid (shape and affine).
+:mod:`segsnake.metrics`). The two masks must be on the same grid (shape and affine). ``--label N``
+takes the truth's voxels of value N (one structure of a label map); without it every non-zero
+voxel is the truth, with a warning when the truth holds more than two values.
 With ``--json`` the output is one JSON object; infinite distances (one mask empty) are ``null``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-from typing import Any
 
-from segsnake.metrics import METRIC_KEYS, evaluate_masks, load_mask_pair
+from segsnake.commands.reporting import add_output_options, emit, warn
+from segsnake.labels import label_map_warning, truth_foreground
+from segsnake.metrics import METRIC_KEYS, evaluate_masks, load_image_pair
 
 HELP = "compare a mask with a truth mask (Dice, Jaccard, volumes, surface distances in mm)"
 
@@ -33,13 +35,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser = subparsers.add_parser("evaluate", help=HELP, description=HELP)
     parser.add_argument("pred", metavar="PRED", help="predicted mask (NIfTI, non-zero = inside)")
     parser.add_argument("truth", metavar="TRUTH", help="truth mask on the same grid")
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--label", type=int, default=None, metavar="N",
+                        help="TRUTH is a label map (an atlas): compare with its voxels of value N "
+                             "only (default: every non-zero voxel)")
+    add_output_options(parser)
     parser.set_defaults(func=run)
     return parser
-
-
-def _json_value(v: float) -> Any:
-    return v if math.isfinite(v) else None
 
 
 def format_table(metrics: dict[str, float]) -> str:
@@ -58,12 +59,15 @@ def format_table(metrics: dict[str, float]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    pred, truth, spacing = load_mask_pair(args.pred, args.truth)
-    metrics = evaluate_masks(pred, truth, spacing)
-    if args.json:
-        record = {"pred": str(args.pred), "truth": str(args.truth), "spacing": list(spacing)}
-        record.update({k: _json_value(metrics[k]) for k in METRIC_KEYS})
-        print(json.dumps(record, allow_nan=False))
-    else:
-        print(format_table(metrics))
+    pred, truth_values, spacing = load_image_pair(args.pred, args.truth)
+    truth, values = truth_foreground(truth_values, args.label, str(args.truth))
+    warnings = []
+    if values is not None:
+        warnings.append(label_map_warning(str(args.truth), values, "--label N"))
+    warn("evaluate", warnings)
+    metrics = evaluate_masks(pred != 0, truth, spacing)
+    record = {"pred": str(args.pred), "truth": str(args.truth), "label": args.label,
+              "spacing": list(spacing), **{k: metrics[k] for k in METRIC_KEYS},
+              "warnings": warnings}
+    emit(args, record, format_table(metrics).splitlines())
     return 0

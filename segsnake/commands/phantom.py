@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from segsnake.commands.reporting import add_output_options, emit
 from segsnake.errors import ConfigError, OutputError
 from segsnake.io import Volume, atomic_write, save_mask, save_volume
 from segsnake.phantoms import PHANTOMS, Phantom, make_phantom, phantom_options
@@ -63,6 +64,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="oblique acquisition grid: Euler angles in degrees (xyz), written "
                              "into the affine only")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    add_output_options(parser)
     parser.set_defaults(func=run)
     return parser
 
@@ -140,5 +142,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     ph = make_phantom(kind, seed=args.seed, **options)
     paths = write_phantom(ph, args.out, overwrite=args.overwrite)
-    print(f"wrote {', '.join(str(p) for p in paths)}")
+    record = {"kind": kind, "outputs": [str(p) for p in paths], "init": ph.init}
+    emit(args, record, [f"wrote {', '.join(str(p) for p in paths)}"])
     return 0

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 
 from segsnake.commands import positive_int
+from segsnake.commands.reporting import add_output_options, emit, progress_off, warn
 
 HELP = "segment one structure in a 3D image with a spline snake"
 
@@ -64,11 +63,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--truth", default=None, metavar="MASK",
                         help="truth mask on the image grid: report Dice, Jaccard, distances")
+    parser.add_argument("--truth-label", type=int, default=None, metavar="N",
+                        help="the truth is a label map (an atlas): compare with its voxels of "
+                             "value N only (default: every non-zero voxel)")
     parser.add_argument("--config", default=None, metavar="FILE.yaml",
                         help="options from a YAML file (flags given here override it)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    parser.add_argument("--json", action="store_true", help="print one JSON summary on stdout")
+    add_output_options(parser)
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
                         help="threads for the array work (default: $SEGSNAKE_NUM_THREADS, "
                              "else every CPU this process may use)")
@@ -118,6 +119,7 @@ def progress_reporter(quiet: bool):
 
 
 def run(args: argparse.Namespace) -> int:
+    from segsnake.errors import ConfigError
     from segsnake.parallel import set_threads, threads
     from segsnake.runner import segment_file
 
@@ -126,24 +128,22 @@ def run(args: argparse.Namespace) -> int:
     threads()  # a bad SEGSNAKE_NUM_THREADS stops here, before any work
 
     config = config_from_args(args)
-    progress, bar = progress_reporter(args.quiet or args.json)
+    if args.truth_label is not None and args.truth is None:
+        raise ConfigError("--truth-label needs --truth (the label map it selects from)")
+    progress, bar = progress_reporter(progress_off(args))
     try:
         summary = segment_file(args.image, args.out, config, truth_path=args.truth,
-                               overwrite=args.overwrite, progress=progress)
+                               truth_label=args.truth_label, truth_label_option="--truth-label N",
+                               overwrite=args.overwrite,
+                               progress=progress)
     finally:
         bar.close()
     # Warnings (e.g. NaN voxels filled) always reach stderr, even with --quiet or --json: they
     # say the result was computed on a changed image. They are also in the summary.
-    for w in summary.get("warnings", []):
-        print(f"segsnake segment: warning: {w}", file=sys.stderr)
-    if args.json:
-        json.dump(summary, sys.stdout, default=float)
-        sys.stdout.write("\n")
-    elif not args.quiet:
-        line = (f"segmented {summary['mask_voxels']} voxels ({summary['volume_mm3']:.0f} mm^3) in "
-                f"{summary['timings']['total_s']:.1f} s")
-        if summary.get("dice") is not None:
-            line += f"; Dice {summary['dice']:.4f}, Jaccard {summary['jaccard']:.4f}"
-        print(line)
-        print(f"outputs in {args.out}: mask.nii.gz surface.vtp snake.json qc.png")
+    warn("segment", summary.get("warnings", []))
+    line = (f"segmented {summary['mask_voxels']} voxels ({summary['volume_mm3']:.0f} mm^3) in "
+            f"{summary['timings']['total_s']:.1f} s")
+    if summary.get("dice") is not None:
+        line += f"; Dice {summary['dice']:.4f}, Jaccard {summary['jaccard']:.4f}"
+    emit(args, summary, [line, f"outputs in {args.out}: mask.nii.gz surface.vtp snake.json qc.png"])
     return 0

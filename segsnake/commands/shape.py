@@ -16,6 +16,7 @@ import json
 
 import numpy as np
 
+from segsnake.commands.reporting import add_output_options, emit
 from segsnake.errors import ConfigError
 
 HELP = "write a reference shape (sphere, ellipsoid, cylinder) for segment --prior"
@@ -34,6 +35,7 @@ def _common(p: argparse.ArgumentParser, m1: int, m2: int) -> None:
     p.add_argument("--m2", type=int, default=m2, help=f"control points along (default {m2})")
     p.add_argument("--out", required=True, metavar="REF.json", help="output file")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_output_options(p)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -113,5 +115,8 @@ def run(args: argparse.Namespace) -> int:
             fh.write(text)
 
     atomic_write(args.out, writer, overwrite=args.overwrite)
-    print(f"wrote {args.kind} reference ({model.kind} model, M1={model.m1}, M2={model.m2}) to {args.out}")
+    record = {"out": args.out, "reference": args.kind, "kind": model.kind, "m1": model.m1,
+              "m2": model.m2}
+    emit(args, record, [f"wrote {args.kind} reference ({model.kind} model, M1={model.m1}, "
+                        f"M2={model.m2}) to {args.out}"])
     return 0

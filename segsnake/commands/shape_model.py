@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 import numpy as np
 
+from segsnake.commands.reporting import add_output_options, emit
 from segsnake.errors import ConfigError, InputError
 
 HELP = "learn a shape model (aligned reference + functional PCA) from saved snakes"
@@ -27,7 +27,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="saved snakes of one kind and size (at least two)")
     parser.add_argument("--out", required=True, metavar="MODEL.json", help="output file")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    parser.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    add_output_options(parser)
     parser.set_defaults(func=run)
     return parser
 
@@ -67,13 +67,10 @@ def run(args: argparse.Namespace) -> int:
         "variances_mm2": sm.variances.tolist(),
         "explained": sm.explained.tolist(),
     }
-    if args.json:
-        json.dump(summary, sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        first_mode = (f"; mode 1 explains {100 * sm.explained[0]:.1f} % of the variance"
-                      if len(sm.variances) else "; no variation left after alignment")
-        print(f"shape model of {len(models)} {first.kind} snakes (M1={first.m1}, M2={first.m2}): "
-              f"alignment residuals up to {summary['max_residual_mm']:.3g} mm, "
-              f"{len(sm.variances)} modes{first_mode}; written to {args.out}")
+    first_mode = (f"; mode 1 explains {100 * sm.explained[0]:.1f} % of the variance"
+                  if len(sm.variances) else "; no variation left after alignment")
+    emit(args, summary, [
+        f"shape model of {len(models)} {first.kind} snakes (M1={first.m1}, M2={first.m2}): "
+        f"alignment residuals up to {summary['max_residual_mm']:.3g} mm, "
+        f"{len(sm.variances)} modes{first_mode}; written to {args.out}"])
     return 0
