@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 from scipy import ndimage
-from machine import machine_info, report  # noqa: E402 (benchmarks/ is on sys.path)
+from machine import machine_info, machine_line, report  # noqa: E402 (benchmarks/ is on sys.path)
 from peer_methods import (init_center, largest, mcv, mgac, otsu_morphology,  # noqa: E402
                           region_post, sitk_gac, unit)
 
@@ -245,12 +245,7 @@ FAMILY_TITLES = {"ball": "Ball (64^3 at 1 mm, 64 x 64 x 32 at 1 x 1 x 2 mm)",
 
 
 def markdown(info: dict) -> str:
-    m = info["machine"]
-    lines = [f"Machine: {m['nproc']} cores, {m['cpu']}, Python {m['python']}, numpy {m['numpy']}, "
-             f"scipy {m['scipy']}, scikit-image {m['skimage']}, SimpleITK {m['SimpleITK']} "
-             f"({m['itk_threads']} ITK threads); segsnake at {m.get('commit', '?')}"
-             + (f" with local changes in {', '.join(m['segsnake_modified'])}"
-                if m.get("segsnake_modified") else "") + ".",
+    lines = [machine_line(info["machine"]) + ".",
              f"Command: `{info['command']}` (total {info['total_s'] / 60:.1f} min).", ""]
     for fam in FAMILIES:
         rows = [v for v in info["volumes"] if v["family"] == fam]

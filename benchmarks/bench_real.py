@@ -60,7 +60,7 @@ for _p in (os.path.join(HERE, "real"), HERE, ROOT):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from machine import machine_info, report  # noqa: E402
+from machine import machine_info, machine_line, report  # noqa: E402
 
 #: The whole-head case: BET and ROBEX run on it, the generic region growers do not.
 BRAIN_CASE = "colin27-brain"
@@ -368,12 +368,7 @@ def summarize(runs: list[dict]) -> dict:
 
 
 def markdown(info: dict) -> str:
-    m = info["machine"]
-    lines = [f"Machine: {m['nproc']} cores, {m['cpu']}, Python {m['python']}, numpy {m['numpy']}, "
-             f"scipy {m['scipy']}, scikit-image {m.get('skimage')}, SimpleITK {m.get('SimpleITK')}; "
-             f"segsnake at {m.get('commit', '?')}"
-             + (f" with local changes in {', '.join(m['segsnake_modified'])}"
-                if m.get("segsnake_modified") else "") + f"; {info['date']}.",
+    lines = [f"{machine_line(info['machine'])}; {info['date']}.",
              f"Command: `{info['command']}` (total {info['total_s'] / 60:.1f} min).", "",
              "| case | tool | Dice (click) | perturbed clicks: min / median / max Dice (n; a failed "
              "run counts 0) | "

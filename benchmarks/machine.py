@@ -46,11 +46,22 @@ def machine_info() -> dict:
         info["commit"] = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"],
                                         capture_output=True, text=True).stdout.strip()
         dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "segsnake"],
-                               capture_output=True, text=True).stdout.strip()
-        info["segsnake_modified"] = [ln[3:] for ln in dirty.splitlines()]
+                               capture_output=True, text=True).stdout
+        # "XY path" lines: strip nothing before the slice (a leading blank is the X status).
+        info["segsnake_modified"] = [ln[3:] for ln in dirty.splitlines() if ln.strip()]
     except OSError:
         pass
     return info
+
+
+def machine_line(m: dict) -> str:
+    """One sentence naming the machine, the library versions and the measured checkout."""
+    itk = f" ({m['itk_threads']} ITK threads)" if "itk_threads" in m else ""
+    return (f"Machine: {m['nproc']} cores, {m['cpu']}, Python {m['python']}, numpy {m['numpy']}, "
+            f"scipy {m['scipy']}, scikit-image {m.get('skimage')}, SimpleITK {m.get('SimpleITK')}"
+            f"{itk}; segsnake at {m.get('commit', '?')}"
+            + (f" with local changes in {', '.join(m['segsnake_modified'])}"
+               if m.get("segsnake_modified") else ""))
 
 
 def report(info: dict, json_path: str | None, markdown: Callable[[dict], str]) -> int:
