@@ -337,7 +337,7 @@ def qc_picture(path: str, case: dict, truth: np.ndarray, sp, seg: np.ndarray) ->
     image = _load(case["image"]).astype(np.float32)
     click = init_mask(case["init"], truth.shape, sp)
     centre = np.round(np.argwhere(click).mean(axis=0)).astype(int)
-    from segsnake.runner import slice_panel
+    from segsnake.qc import slice_panel
 
     fig = Figure(figsize=(12, 4.2), dpi=72)
     contours = [(truth, "lime", "solid", 1.0), (seg, "red", "solid", 1.0),

@@ -300,6 +300,21 @@ def _path(v: Any) -> str:
     return v
 
 
+def _mesh_name(v: Any) -> str:
+    from segsnake.meshes import MESH_SUFFIXES, mesh_suffix
+
+    if not isinstance(v, str) or not v:
+        raise ValueError(f"must be a file name, got {_describe(v)}")
+    # A plain name: the mesh is one of the run's outputs and goes into its output directory with
+    # the others (written and moved into place together with them).
+    if os.path.basename(v) != v or v in (".", ".."):
+        raise ValueError(f"must be a file name without a directory (it is written into --out), "
+                         f"got {v!r}")
+    if mesh_suffix(v) is None:
+        raise ValueError(f"must end in {', '.join(MESH_SUFFIXES)} (the mesh format), got {v!r}")
+    return v
+
+
 def _optional(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
     def wrapped(v: Any) -> Any:
         return None if v is None else check(v)
@@ -331,6 +346,7 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "volume": _optional(lambda v: _int(v, low=0)),
     "nan": _choice(NAN_POLICIES),
     "polarity": _choice(POLARITIES),
+    "mesh": _optional(_mesh_name),
 }
 
 # Options whose value is a file path: relative paths in a YAML file are relative to that file.
@@ -370,6 +386,7 @@ class SegmentConfig:
     volume: int | None = None
     nan: str = "refuse"
     polarity: str = "auto"
+    mesh: str | None = None  # the surface also as NAME.stl/.obj/.ply in the output directory
 
     # -- construction -------------------------------------------------------------------------
 

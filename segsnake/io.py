@@ -1,7 +1,8 @@
 """Volume input and output: one Volume type, strict input checks, atomic outputs.
 
 Reading: NIfTI (``.nii``, ``.nii.gz``, Analyze ``.hdr/.img``) through nibabel,
-everything else (``.nrrd``, ``.mha``, ``.mhd``, ...) through SimpleITK, into a
+a directory as one DICOM series (:mod:`segsnake.dicom`), everything else
+(``.nrrd``, ``.mha``, ``.mhd``, ...) through SimpleITK, into a
 :class:`Volume` whose ``data[i, j, k]`` is float32 and C-ordered with ``i`` along
 the file's first index axis, ``spacing`` the voxel size in mm (column norms of
 the voxel-to-world affine) and ``affine`` the 4x4 voxel-to-world (RAS+, mm)
@@ -206,6 +207,12 @@ def _check_file(path: str) -> None:
         raise InputError(f"{path}: not a gzip file (corrupt or misnamed .gz)")
 
 
+def _check_directory(path: str) -> None:
+    """A directory is read as a DICOM series: it must be listable."""
+    if not os.access(path, os.R_OK | os.X_OK):
+        raise InputError(f"{path}: permission denied (a DICOM series directory must be readable)")
+
+
 def _one_line(exc: BaseException) -> str:
     """A reader's exception as one short line (SimpleITK's C++ location prefix removed)."""
     text = str(exc)
@@ -324,7 +331,8 @@ def load_volume(
     Parameters
     ----------
     path : str or path-like
-        ``.nii``/``.nii.gz`` (nibabel) or any format SimpleITK reads.
+        ``.nii``/``.nii.gz`` (nibabel), a directory holding one DICOM series, or any
+        format SimpleITK reads.
     volume_index : int, optional
         Which volume of a 4D image (required when the 4th axis is longer than 1).
     nan : {"refuse", "fill"}
@@ -349,11 +357,19 @@ def load_volume(
     if volume_index is not None and (isinstance(volume_index, bool) or int(volume_index) < 0):
         raise ConfigError(f"--volume must be a non-negative integer, got {volume_index!r}")
     spath = os.fspath(path)
-    _check_file(spath)
+    series = os.path.isdir(spath)
+    if series:
+        _check_directory(spath)
+    else:
+        _check_file(spath)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            if _is_nifti_name(spath):
+            if series:
+                from segsnake.dicom import load_dicom_series
+
+                vol = load_dicom_series(spath, volume_index, nan, bytes_per_voxel)
+            elif _is_nifti_name(spath):
                 vol = _load_nibabel(spath, volume_index, nan, bytes_per_voxel)
             else:
                 vol = _load_sitk(spath, volume_index, nan, bytes_per_voxel)
@@ -494,22 +510,53 @@ def _load_sitk(path: str, volume_index: int | None, nan: str, bpv: float | None)
     if bpv is not None:
         check_memory(shape3, bpv, what=path)
         check_memory(full, 8.0, what=path)  # the whole file is read
-    spacing_itk = np.asarray(reader.GetSpacing(), dtype=np.float64)[:3]
-    origin = np.asarray(reader.GetOrigin(), dtype=np.float64)[:3]
-    direction = np.asarray(reader.GetDirection(), dtype=np.float64).reshape(dim, dim)[:3, :3]
-    if not np.all(np.isfinite(spacing_itk)) or np.any(spacing_itk <= 0):
-        raise InputError(
-            f"{path}: invalid voxel spacing {tuple(float(s) for s in spacing_itk)} (must be > 0)"
-        )
-    affine = np.eye(4)
-    affine[:3, :3] = _LPS_TO_RAS @ direction @ np.diag(spacing_itk)
-    affine[:3, 3] = _LPS_TO_RAS @ origin
-    spacing = _check_geometry(path, affine)
+    affine, spacing = sitk_affine(path, reader.GetSpacing(), reader.GetOrigin(),
+                                  reader.GetDirection(), dim)
     try:
         with _quiet_stderr():
             image = reader.Execute()
     except RuntimeError as exc:  # the header was readable, the data are not
         raise InputError(f"{path}: truncated or corrupt image data ({_one_line(exc)})") from None
+    return sitk_volume(path, image, affine, spacing, shape3, ncomp, vidx, nan)
+
+
+def sitk_affine(path: str, spacing, origin, direction, dim: int
+                ) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """The RAS+ voxel-to-world affine and the checked spacing of a SimpleITK (LPS) geometry.
+
+    Parameters
+    ----------
+    path : str
+        The input, named in error messages.
+    spacing, origin, direction : sequences of float
+        SimpleITK's ``GetSpacing()``, ``GetOrigin()`` and ``GetDirection()`` (row-major
+        ``dim x dim``); only their first three axes are used.
+    dim : int
+        The image dimension.
+
+    Raises
+    ------
+    InputError
+        Non-positive, non-finite or implausible spacing, or a singular direction.
+    """
+    spacing_itk = np.asarray(spacing, dtype=np.float64)[:3]
+    origin3 = np.asarray(origin, dtype=np.float64)[:3]
+    direction3 = np.asarray(direction, dtype=np.float64).reshape(dim, dim)[:3, :3]
+    if not np.all(np.isfinite(spacing_itk)) or np.any(spacing_itk <= 0):
+        raise InputError(
+            f"{path}: invalid voxel spacing {tuple(float(s) for s in spacing_itk)} (must be > 0)"
+        )
+    affine = np.eye(4)
+    affine[:3, :3] = _LPS_TO_RAS @ direction3 @ np.diag(spacing_itk)
+    affine[:3, 3] = _LPS_TO_RAS @ origin3
+    return affine, _check_geometry(path, affine)
+
+
+def sitk_volume(path: str, image, affine: np.ndarray, spacing: tuple[float, float, float],
+                shape3: tuple[int, int, int], ncomp: int, vidx: int | None, nan: str) -> Volume:
+    """A :class:`Volume` from a SimpleITK image already read and checked (one volume chosen)."""
+    import SimpleITK as sitk
+
     arr = sitk.GetArrayViewFromImage(image)  # (z, y, x), (z, y, x, c) or (t, z, y, x)
     if ncomp > 1:
         arr = arr[..., 0 if vidx is None else vidx]
@@ -519,7 +566,6 @@ def _load_sitk(path: str, volume_index: int | None, nan: str, bpv: float | None)
     data, notes = _finish(path, arr, nan)
     if np.shares_memory(data, arr):  # never keep a view into SimpleITK's buffer
         data = data.copy()
-    del image
     return Volume(
         data=data, spacing=spacing, affine=affine, path=path, header=None,
         warnings=notes, source_shape=shape3, volume_index=vidx,

@@ -2,9 +2,10 @@
 
 ``segment_file`` refuses bad outputs (an existing output without ``overwrite``, an output that is an
 input, an unwritable directory) *before* any work, loads and validates the image, segments, and
-writes ``mask.nii.gz``, ``surface.vtp``, ``snake.json`` and ``qc.png``.
+writes ``mask.nii.gz``, ``surface.vtp``, ``snake.json`` and ``qc.png`` (and the surface as STL, OBJ or
+PLY when the ``mesh`` option names a file).
 
-All four outputs are first written into a staging directory inside the output directory and moved
+All the outputs are first written into a staging directory inside the output directory and moved
 into place only when all of them are complete; if a move fails, the ones already moved are taken
 back and the earlier outputs restored. So a failed or interrupted run leaves no partial file, never
 a mix of old and new outputs, and (when it created the output directory) no empty directory.
@@ -24,10 +25,17 @@ import numpy as np
 
 from segsnake import __version__
 from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
+from segsnake.meshes import write_mesh, write_surface
+from segsnake.qc import click_index, write_qc_picture
 
-__all__ = ["OUTPUT_NAMES", "segment_file", "write_qc_picture", "write_surface"]
+__all__ = ["OUTPUT_NAMES", "output_names", "segment_file"]
 
 OUTPUT_NAMES = ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png")
+
+
+def output_names(config) -> tuple[str, ...]:
+    """The files a run writes: the four :data:`OUTPUT_NAMES` and the ``mesh`` option's file."""
+    return OUTPUT_NAMES + ((config.mesh,) if config.mesh is not None else ())
 
 
 def _existing_ancestor(path: str) -> str:
@@ -41,7 +49,8 @@ def _existing_ancestor(path: str) -> str:
     return d
 
 
-def _check_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None]) -> None:
+def _check_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None],
+                   names: tuple[str, ...] = OUTPUT_NAMES) -> None:
     """Refuse, before any work, every output problem that can be seen in advance.
 
     Nothing is created here: a run that fails later (bad input, failed segmentation) leaves no
@@ -51,7 +60,7 @@ def _check_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None]) -> N
 
     if os.path.lexists(out_dir) and not os.path.isdir(out_dir):
         raise OutputError(f"{out_dir}: exists and is not a directory")
-    for name in OUTPUT_NAMES:
+    for name in names:
         path = os.path.join(out_dir, name)
         check_not_input(path, *inputs)
         if os.path.lexists(path) and not overwrite:
@@ -87,7 +96,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     Parameters
     ----------
     image_path : str
-        NIfTI (or any SimpleITK-readable) volume.
+        NIfTI (or any SimpleITK-readable) volume, or a directory holding one DICOM series.
     out_dir : str
         Output directory (created if missing, only when the outputs are written).
     config : SegmentConfig
@@ -128,7 +137,8 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     image_path = os.fspath(image_path)
     out_dir = os.fspath(out_dir)
     truth_path = None if truth_path is None else os.fspath(truth_path)
-    _check_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior])
+    names = output_names(config)
+    _check_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior], names)
     t0 = time.perf_counter()
     volume = load_volume(image_path, volume_index=config.volume, nan=config.nan)
     truth = None
@@ -167,12 +177,14 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         metrics = evaluate_masks(result.mask, truth, volume.spacing)
         summary.update({k: (float(v) if np.isfinite(v) else None) for k, v in metrics.items()})
     t0 = time.perf_counter()
-    _write_outputs(out_dir, volume, result, config, summary, timings, overwrite)
+    _write_outputs(out_dir, volume, result, config, summary, timings, overwrite, truth)
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["timings"] = timings
     summary["outputs"] = {name.split(".")[0]: os.path.abspath(os.path.join(out_dir, name))
                           for name in OUTPUT_NAMES}
+    if config.mesh is not None:
+        summary["outputs"]["mesh"] = os.path.abspath(os.path.join(out_dir, config.mesh))
     return summary
 
 
@@ -238,46 +250,6 @@ def _prior_energy(config):
     return make
 
 
-def write_surface(path: str, model, volume) -> None:
-    """Write the snake as a VTK XML PolyData file (``.vtp``) in world coordinates.
-
-    The mesh is the model's default sampling (8 vertices per control interval, poles or end caps
-    closed): smooth on screen and about a hundred kilobytes, where the rasterizer's sub-voxel mesh
-    would be megabytes. Point coordinates are float32 world millimetres (the image affine
-    applied to voxel indices), binary, zlib-compressed.
-
-    The file is serialised in memory and written with Python's I/O: VTK's own file output
-    aborts the whole process on a full disk (measured: ``free(): invalid pointer`` with
-    VTK 9.7), where Python raises an ``OSError`` the caller turns into a clean failure.
-
-    Parameters
-    ----------
-    path : str
-        Destination file.
-    model : SplineSurface
-        The snake, in mm of scaled index space.
-    volume : Volume
-        The image: its spacing and affine map the model to world coordinates.
-    """
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
-
-    mesh = model.to_mesh()
-    index = np.asarray(mesh.points, dtype=np.float64) / np.asarray(volume.spacing)
-    mesh.points = volume.index_to_world(index).astype(np.float32)
-    writer = vtkXMLPolyDataWriter()
-    writer.SetInputData(mesh)
-    writer.SetWriteToOutputString(True)
-    # Inline binary is base64 text, so the string is plain ASCII (appended raw data would not
-    # survive the str round trip of the Python wrapper).
-    writer.SetDataModeToBinary()
-    writer.SetCompressorTypeToZLib()
-    if writer.Write() != 1:
-        raise OSError(f"VTK could not serialise the surface ({mesh.n_points} points)")
-    text = writer.GetOutputString()
-    with open(path, "wb") as fh:
-        fh.write(text.encode("ascii"))
-
-
 def _make_dirs(out_dir: str) -> list[str]:
     """``makedirs`` that returns the directories it created, outermost first."""
     missing = []
@@ -302,7 +274,8 @@ def _remove_empty_dirs(created: list[str]) -> None:
             os.rmdir(d)  # only succeeds when empty: never removes anything else
 
 
-def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite) -> None:
+def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite,
+                   truth=None) -> None:
     """Write every output into a staging directory, then move them into place together.
 
     Every failure (disk full, read-only directory, an output that appeared meanwhile, Ctrl-C)
@@ -330,6 +303,9 @@ def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite)
                 raise OutputError(f"{current}: {reason}") from None
             current = os.path.join(out_dir, "surface.vtp")
             write_surface(os.path.join(stage, "surface.vtp"), result.model, volume)
+            if config.mesh is not None:
+                current = os.path.join(out_dir, config.mesh)
+                write_mesh(os.path.join(stage, config.mesh), result.model, volume)
             current = os.path.join(out_dir, "snake.json")
             snake = {
                 "format": "segsnake-result",
@@ -350,9 +326,10 @@ def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite)
                 fh.write(text)
             current = os.path.join(out_dir, "qc.png")
             write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing,
-                             result.mask, result.model, result.init_model)
+                             result.mask, result.model, result.init_model, affine=volume.affine,
+                             truth=truth, click=click_index(config, volume))
             current = out_dir
-            _commit(stage, out_dir, overwrite)
+            _commit(stage, out_dir, overwrite, output_names(config))
         except OSError as exc:
             raise OutputError(f"{current}: cannot write ({exc.strerror or exc})") from None
         ok = True
@@ -363,17 +340,18 @@ def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite)
             _remove_empty_dirs(created)
 
 
-def _commit(stage: str, out_dir: str, overwrite: bool) -> None:
+def _commit(stage: str, out_dir: str, overwrite: bool,
+            names: tuple[str, ...] = OUTPUT_NAMES) -> None:
     """Move the staged outputs into ``out_dir``: all of them, or (on any failure) none.
 
     Earlier outputs are first hard-linked (or copied) into the staging directory so that they
     can be put back; new outputs are moved in with ``os.replace`` (``overwrite``) or with
     ``os.link``, which refuses a name that appeared since the start.
     """
-    finals = [os.path.join(out_dir, n) for n in OUTPUT_NAMES]
+    finals = [os.path.join(out_dir, n) for n in names]
     backups: dict[str, str] = {}
     if overwrite:
-        for name, final in zip(OUTPUT_NAMES, finals):
+        for name, final in zip(names, finals):
             if os.path.lexists(final):
                 keep = os.path.join(stage, ".old-" + name)
                 try:
@@ -383,7 +361,7 @@ def _commit(stage: str, out_dir: str, overwrite: bool) -> None:
                 backups[final] = keep
     placed: list[str] = []
     try:
-        for name, final in zip(OUTPUT_NAMES, finals):
+        for name, final in zip(names, finals):
             src = os.path.join(stage, name)
             if overwrite:
                 os.replace(src, final)
@@ -421,75 +399,3 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def slice_panel(ax, image: np.ndarray, spacing, axis: int, index: int,
-                contours: list[tuple[np.ndarray, str, str, float]],
-                levels: tuple[float, float] | None = None) -> None:
-    """One slice of ``image`` across array ``axis`` at ``index``, in mm with the physical aspect
-    ratio, and each mask of ``contours`` (mask, colour, line style, width) as a contour.
-
-    ``levels``: the grey range (default the slice's 1st and 99.5th percentiles).
-    """
-    sp = np.asarray(spacing, dtype=float)
-    sl = [slice(None)] * 3
-    sl[axis] = index
-    sl = tuple(sl)
-    other = [d for d in range(3) if d != axis]
-    extent = (0, image.shape[other[0]] * sp[other[0]], 0, image.shape[other[1]] * sp[other[1]])
-    lo, hi = levels if levels is not None else np.percentile(image[sl], [1, 99.5])
-    ax.imshow(image[sl].T, cmap="gray", origin="lower", vmin=lo, vmax=hi, extent=extent,
-              interpolation="nearest")
-    xs = (np.arange(image.shape[other[0]]) + 0.5) * sp[other[0]]
-    ys = (np.arange(image.shape[other[1]]) + 0.5) * sp[other[1]]
-    for mask, colour, style, width in contours:
-        if mask[sl].any():
-            ax.contour(xs, ys, mask[sl].T.astype(float), [0.5], colors=colour, linestyles=style,
-                       linewidths=width)
-    names = ("i (x)", "j (y)", "k (z)")
-    ax.set_title(f"{names[axis]} = {index}", fontsize=9)
-    ax.set_xlabel(f"{names[other[0]]} mm", fontsize=8)
-    ax.set_ylabel(f"{names[other[1]]} mm", fontsize=8)
-    ax.tick_params(labelsize=7)
-
-
-def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, model,
-                     init_model=None) -> None:
-    """Three orthogonal slices through the object with the contour, and a 3D view.
-
-    Slices pass through the mask's centroid and are drawn with the physical aspect ratio
-    (anisotropic voxels are not stretched); the final contour is red, the initial one dashed.
-    """
-    # The object-oriented API without pyplot: nothing global (a notebook keeps its backend).
-    from matplotlib.figure import Figure
-    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the "3d" projection
-
-    from segsnake.rasterize import rasterize
-
-    from scipy import ndimage
-
-    sp = np.asarray(spacing, dtype=float)
-    centre = (np.round(ndimage.center_of_mass(mask)).astype(int) if mask.any()
-              else np.array(mask.shape) // 2)
-    init_mask = rasterize(init_model, mask.shape, spacing) if init_model is not None else None
-    # Grey levels from the three slices shown (a percentile of the whole volume costs 0.2 s).
-    shown = [np.take(image, int(centre[axis]), axis=axis).ravel() for axis in range(3)]
-    lo, hi = np.percentile(np.concatenate(shown), [1, 99.5])
-    fig = Figure(figsize=(13, 3.6), dpi=90)
-    contours = ([] if init_mask is None else [(init_mask, "yellow", "dashed", 0.8)]) + \
-        [(mask, "red", "solid", 1.0)]
-    for panel, axis in enumerate((2, 1, 0)):
-        ax = fig.add_subplot(1, 4, panel + 1)
-        slice_panel(ax, image, sp, axis, int(centre[axis]), contours, levels=(lo, hi))
-    ax3 = fig.add_subplot(1, 4, 4, projection="3d")
-    mesh = model.to_mesh(4 * model.m1, 4 * model.m2)
-    faces = np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]
-    pts = np.asarray(mesh.points)
-    ax3.plot_trisurf(pts[:, 0], pts[:, 1], faces, pts[:, 2], color="tomato", alpha=0.8,
-                     linewidth=0.1, edgecolor="k")
-    ax3.set_box_aspect(np.ptp(pts, axis=0) + 1e-9)
-    ax3.set_title("surface (mm)", fontsize=9)
-    ax3.tick_params(labelsize=6)
-    # Fixed margins: tight_layout measured 0.15 s of text extents for the same result.
-    fig.subplots_adjust(left=0.045, right=0.985, bottom=0.15, top=0.9, wspace=0.32)
-    fig.savefig(path, format="png")

@@ -40,7 +40,8 @@ def test_defaults_are_the_documented_ones():
     assert (c.coarse_to_fine, c.prior_weight, c.prior_space, c.nan, c.polarity, c.world) == (
         True, 1.0, "affine", "refuse", "auto", False)
     assert c.m1 is c.m2 is c.scale is c.center is c.volume is None
-    assert len(SegmentConfig.keys()) == 22
+    assert c.mesh is None  # no extra surface file unless asked
+    assert len(SegmentConfig.keys()) == 23
 
 
 def test_to_dict_round_trip_and_normalisation():

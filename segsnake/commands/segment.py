@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from segsnake.commands import positive_int
 from segsnake.commands.reporting import add_output_options, emit, progress_off, warn
@@ -47,6 +48,10 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
     m.add_argument("--volume", type=int, default=None, metavar="N", help="which volume of a 4D image")
     m.add_argument("--nan", choices=("refuse", "fill"), default=None,
                    help="NaN/Inf voxels: refuse the image (default) or fill with its minimum")
+    o = parser.add_argument_group("outputs")
+    o.add_argument("--mesh", default=None, metavar="NAME.stl",
+                   help="also write the surface as NAME.stl, NAME.obj or NAME.ply (by the "
+                        "extension; world mm, like surface.vtp) in the output directory")
     p = parser.add_argument_group("shape prior")
     p.add_argument("--prior", default=None, metavar="REF.json", help="reference snake (a saved model)")
     p.add_argument("--prior-weight", type=float, default=None, metavar="W",
@@ -59,7 +64,8 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     parser = subparsers.add_parser("segment", help=HELP, description=HELP)
-    parser.add_argument("image", metavar="IMAGE", help="NIfTI (.nii, .nii.gz) or NRRD/MHA volume")
+    parser.add_argument("image", metavar="IMAGE", help="NIfTI (.nii, .nii.gz) or NRRD/MHA volume, or a DICOM series "
+                        "directory")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--truth", default=None, metavar="MASK",
                         help="truth mask on the image grid: report Dice, Jaccard, distances")
@@ -80,7 +86,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "world", "m1", "m2",
                "scale", "feature", "polarity", "threshold", "seed_point", "max_iter", "volume", "nan",
-               "prior", "prior_weight", "prior_space")
+               "prior", "prior_weight", "prior_space", "mesh")
 
 
 def config_from_args(args: argparse.Namespace):
@@ -145,5 +151,6 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['timings']['total_s']:.1f} s")
     if summary.get("dice") is not None:
         line += f"; Dice {summary['dice']:.4f}, Jaccard {summary['jaccard']:.4f}"
-    emit(args, summary, [line, f"outputs in {args.out}: mask.nii.gz surface.vtp snake.json qc.png"])
+    names = " ".join(os.path.basename(p) for p in summary["outputs"].values())
+    emit(args, summary, [line, f"outputs in {args.out}: {names}"])
     return 0

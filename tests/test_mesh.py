@@ -1,0 +1,90 @@
+"""``--mesh NAME.stl|.obj|.ply``: the surface in world coordinates, written with the other outputs."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from segsnake.cli import main
+from segsnake.commands.phantom import write_phantom
+from segsnake.io import load_volume
+from segsnake.meshes import write_mesh, write_surface
+from segsnake.phantoms import make_phantom
+
+
+@pytest.fixture(scope="module")
+def rotated(tmp_path_factory):
+    """A small ball on a rotated, anisotropic grid: world coordinates differ from index x spacing."""
+    out = tmp_path_factory.mktemp("ph")
+    ph = make_phantom("ball", seed=1, shape=(32, 32, 24), spacing=(1.0, 1.0, 1.5), noise=0.05,
+                      grid_rotation=(10.0, 0.0, 20.0))
+    write_phantom(ph, out)
+    return ph, out / "image.nii.gz"
+
+
+@pytest.mark.parametrize("name", ["surface.stl", "surface.obj", "surface.PLY"])
+def test_mesh_formats_hold_the_vtp_surface_in_world_mm(tmp_path, rotated, name):
+    from segsnake.pipeline import initial_model
+    from segsnake.config import SegmentConfig
+
+    ph, image = rotated
+    volume = load_volume(image)
+    config = SegmentConfig(center=list(ph.init["center"]), radii=list(ph.init["radii"]))
+    model = initial_model(config, volume.spacing, volume.shape)
+    write_surface(str(tmp_path / "surface.vtp"), model, volume)
+    write_mesh(str(tmp_path / name), model, volume)
+    vtp = pv.read(tmp_path / "surface.vtp")
+    mesh = pv.read(tmp_path / name)
+    assert mesh.n_cells == vtp.n_cells
+    # Same points (STL stores each triangle's corners: compare the sets).
+    np.testing.assert_allclose(np.unique(np.round(mesh.points, 3), axis=0),
+                               np.unique(np.round(vtp.points, 3), axis=0), atol=2e-3)
+    assert abs(mesh.volume - vtp.volume) < 1e-3 * vtp.volume
+
+
+def test_segment_writes_the_mesh_with_the_other_outputs(tmp_path, rotated, capsys):
+    ph, image = rotated
+    init = ["--center", *map(str, ph.init["center"]), "--radii", *map(str, ph.init["radii"])]
+    out = tmp_path / "seg"
+    rc = main(["segment", str(image), "--out", str(out), "--mesh", "ball.stl", *init])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "ball.stl" in cap.out
+    assert sorted(os.listdir(out)) == sorted(["mask.nii.gz", "surface.vtp", "snake.json",
+                                              "qc.png", "ball.stl"])
+    mesh, vtp = pv.read(out / "ball.stl"), pv.read(out / "surface.vtp")
+    np.testing.assert_allclose(mesh.bounds, vtp.bounds, atol=1e-3)
+    # Again without --overwrite: refused before any work because the mesh exists (exit 5).
+    for name in ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png"):
+        (out / name).unlink()
+    rc = main(["segment", str(image), "--out", str(out), "--mesh", "ball.stl", *init])
+    err = capsys.readouterr().err
+    assert rc == 5 and "ball.stl: already exists" in err
+
+
+@pytest.mark.parametrize("name, problem", [("ball.vtk", "must end in .stl, .obj, .ply"),
+                                           ("sub/ball.stl", "without a directory"),
+                                           (".stl", "must end in")])
+def test_bad_mesh_names_are_usage_errors(tmp_path, rotated, capsys, name, problem):
+    _, image = rotated
+    rc = main(["segment", str(image), "--out", str(tmp_path / "seg"), "--mesh", name])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and problem in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "seg").exists()
+
+
+def test_a_failed_mesh_write_leaves_no_output(tmp_path, rotated, capsys, monkeypatch):
+    ph, image = rotated
+
+    def disk_full(path, model, volume):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("segsnake.runner.write_mesh", disk_full)
+    init = ["--center", *map(str, ph.init["center"]), "--radii", *map(str, ph.init["radii"])]
+    rc = main(["segment", str(image), "--out", str(tmp_path / "seg"), "--mesh", "b.ply", *init])
+    err = capsys.readouterr().err
+    assert rc == 5 and "b.ply: cannot write (No space left on device)" in err
+    assert not (tmp_path / "seg").exists()
