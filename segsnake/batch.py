@@ -67,6 +67,8 @@ from typing import Any, Callable, Iterable, Iterator
 from segsnake.config import (
     LineDict,
     LineList,
+    PATH_KEYS,
+    POSITION_KEYS,
     SegmentConfig,
     load_yaml,
     locate,
@@ -331,13 +333,14 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
             continue
         if bad:
             continue
-        config = dataclasses.replace(config, **resolve_paths({"prior": config.prior}, base)) \
-            if config.prior else config
+        config = dataclasses.replace(config, **resolve_paths(
+            {k: getattr(config, k) for k in PATH_KEYS}, base))
         where = {"image": locate(src, raw, "image")}
         if truth:
             where["truth"] = locate(src, raw, "truth")
-        if config.prior:
-            where["prior"] = locate(src, merged, "prior")
+        for key in ("prior",) + POSITION_KEYS:  # the files among the options
+            if isinstance(getattr(config, key), str):
+                where[key] = locate(src, merged, key)
         cases.append(BatchCase(
             name=name,
             image=os.path.abspath(base / Path(image).expanduser()),

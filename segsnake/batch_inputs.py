@@ -1,7 +1,7 @@
 """The files a batch names must be there before any case runs.
 
 :func:`segsnake.batch.load_batch` validates the YAML itself; this module then looks for every
-image, truth and prior it names, so that a batch of twenty cases whose images were never made
+image, truth, prior and markups file (a position given as a file) it names, so that a batch of twenty cases whose images were never made
 stops at once with the list of what is missing, instead of recording twenty "file not found"
 failures one case process after another. Paths are checked as this machine sees them.
 """
@@ -12,11 +12,12 @@ import os
 import re
 from typing import Any
 
+from segsnake.config import POSITION_KEYS
 from segsnake.errors import InputError
 
 __all__ = ["missing_inputs", "check_inputs"]
 
-ROLES = ("image", "truth", "prior")
+ROLES = ("image", "truth", "prior") + POSITION_KEYS
 
 
 def _problem(path: str) -> str | None:
@@ -40,14 +41,17 @@ def missing_inputs(spec: Any) -> list[dict[str, Any]]:
     -------
     list of dict
         ``where`` (``FILE:LINE:COL`` of the key), ``line``, ``case``, ``role`` (image, truth,
-        prior), ``path`` (absolute) and ``problem``; a file named once for several cases (a
+        prior, or the position a markups file gives: center, seed_point, ...), ``path`` (absolute) and ``problem``; a file named once for several cases (a
         prior in ``defaults:``) is listed once.
     """
     found: dict[tuple[str, str], dict[str, Any]] = {}
     for case in spec.cases:
         paths = {"image": case.image, "truth": case.truth, "prior": case.config.prior}
+        # Positions given as numbers are not files.
+        paths.update({key: value for key in POSITION_KEYS
+                      if isinstance(value := getattr(case.config, key), str)})
         for role in ROLES:
-            path = paths[role]
+            path = paths.get(role)
             if path is None:
                 continue
             problem = _problem(path)

@@ -315,6 +315,14 @@ def _mesh_name(v: Any) -> str:
     return v
 
 
+def _position(v: Any) -> list[float] | str:
+    # A position is three numbers or a 3D Slicer markups file (segsnake.markups reads it once the
+    # image, whose affine converts it, is loaded).
+    if isinstance(v, (str, os.PathLike)):
+        return _path(v)
+    return _vec3()(v)
+
+
 def _optional(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
     def wrapped(v: Any) -> Any:
         return None if v is None else check(v)
@@ -325,10 +333,10 @@ def _optional(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
 # Field name -> validator. Every SegmentConfig field has one (checked at import time below).
 _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "shape": _choice(SHAPES),
-    "center": _optional(_vec3()),
+    "center": _optional(_position),
     "radii": _optional(_vec3(positive=True)),
-    "axis_start": _optional(_vec3()),
-    "axis_end": _optional(_vec3()),
+    "axis_start": _optional(_position),
+    "axis_end": _optional(_position),
     "radius": _optional(lambda v: _float(v, low=0.0, strict_low=True)),
     "world": _bool,
     "m1": _optional(lambda v: _int(v, low=M_MIN, high=M_MAX)),
@@ -336,7 +344,7 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "scale": _optional(lambda v: _float(v, low=0.0, strict_low=True)),
     "feature": _choice(FEATURES),
     "threshold": _threshold,
-    "seed_point": _optional(_vec3()),
+    "seed_point": _optional(_position),
     "max_iter": lambda v: _int(v, low=1),
     "tol": lambda v: _float(v, low=0.0, strict_low=True),
     "coarse_to_fine": _bool,
@@ -349,8 +357,10 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "mesh": _optional(_mesh_name),
 }
 
-# Options whose value is a file path: relative paths in a YAML file are relative to that file.
-PATH_KEYS = ("prior",)
+# Options that are positions: three numbers, or a 3D Slicer markups file (segsnake.markups).
+POSITION_KEYS = ("center", "seed_point", "axis_start", "axis_end")
+# Options whose value is (or may be) a file path: relative paths in a YAML file are relative to it.
+PATH_KEYS = ("prior",) + POSITION_KEYS
 
 
 @dataclass
@@ -358,17 +368,18 @@ class SegmentConfig:
     """Every option of ``segsnake segment``; field names are a contract shared with the CLI and YAML.
 
     Positions (``center``, ``axis_start``, ``axis_end``, ``seed_point``) are voxel indices
-    ``(i, j, k)`` along the array axes and lengths (``radii``, ``radius``) are in voxels, as the
-    ``segment`` flags take them; with ``world`` true they are NIfTI world millimetres instead
+    ``(i, j, k)`` along the array axes, or a 3D Slicer markups file (``.mrk.json``, read by
+    :func:`segsnake.markups.resolve_markups` once the image is loaded), and lengths
+    (``radii``, ``radius``) are in voxels, as the ``segment`` flags take them; with ``world`` true they are NIfTI world millimetres instead
     (:func:`segsnake.pipeline.initial_model` converts either to mm of scaled index space).
     ``scale`` is in mm. ``None`` means "choose automatically / model default".
     """
 
     shape: str = "sphere"
-    center: list[float] | None = None
+    center: list[float] | str | None = None  # str: a markups file (segsnake.markups)
     radii: list[float] | None = None
-    axis_start: list[float] | None = None
-    axis_end: list[float] | None = None
+    axis_start: list[float] | str | None = None
+    axis_end: list[float] | str | None = None
     radius: float | None = None
     world: bool = False
     m1: int | None = None
@@ -376,7 +387,7 @@ class SegmentConfig:
     scale: float | None = None
     feature: str = "edge"
     threshold: str | float = "auto"
-    seed_point: list[float] | None = None
+    seed_point: list[float] | str | None = None
     max_iter: int = 300
     tol: float = 1e-6
     coarse_to_fine: bool = True
@@ -454,7 +465,7 @@ class SegmentConfig:
 
     def _consistency_problem(self) -> tuple[str, str] | None:
         """Checks that involve more than one option: ``(key, message)`` or ``None``."""
-        if self.axis_start is not None and self.axis_end is not None:
+        if isinstance(self.axis_start, list) and isinstance(self.axis_end, list):
             length = math.dist(self.axis_start, self.axis_end)
             if length == 0.0:
                 return "axis_end", "axis_start and axis_end coincide: the cylinder axis has zero length"
@@ -480,7 +491,8 @@ if set(_VALIDATORS) != set(SegmentConfig.keys()):  # pragma: no cover - develope
 
 
 def resolve_paths(options: dict[str, Any], base_dir: str | os.PathLike[str]) -> dict[str, Any]:
-    """Make relative path options (``prior``) absolute against ``base_dir``; returns a new dict."""
+    """Make relative path options (``prior``, markups files given as positions) absolute against
+    ``base_dir``; returns a new dict (values that are not text, such as numbers, unchanged)."""
     out = dict(options)
     for key in PATH_KEYS:
         value = out.get(key)
@@ -511,6 +523,5 @@ def load_segment_config(path: str | os.PathLike[str]) -> SegmentConfig:
         raise ConfigError(f"{locate(str(p), data)}: a segment config must be a mapping of "
                           f"option: value, got {_describe(data)}")
     config = SegmentConfig.from_mapping(data, source=str(p))
-    if config.prior is not None:
-        config = dataclasses.replace(config, **resolve_paths({"prior": config.prior}, p.parent))
-    return config
+    return dataclasses.replace(config, **resolve_paths(
+        {k: getattr(config, k) for k in PATH_KEYS}, p.parent))

@@ -25,6 +25,7 @@ import numpy as np
 
 from segsnake import __version__
 from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
+from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
 from segsnake.qc import click_index, write_qc_picture
 
@@ -146,6 +147,8 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     if truth_path is not None:
         truth, truth_warnings = _load_truth(truth_path, volume, truth_label, truth_label_option)
     load_s = time.perf_counter() - t0
+    # Markups files given as positions become numbers here: converting them needs the affine.
+    config = resolve_markups(config, volume.world_to_index)
 
     extra = None
     if config.prior is not None and config.prior_weight > 0:

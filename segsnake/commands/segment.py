@@ -15,16 +15,42 @@ def _vec3(parser: argparse.ArgumentParser, flag: str, meta: tuple[str, str, str]
     parser.add_argument(flag, nargs=3, type=float, metavar=meta, default=None, help=help)
 
 
+def _position(parser: argparse.ArgumentParser, flag: str, help: str) -> None:
+    # Three numbers or one file: argparse cannot say "3 or 1", so take any count and let
+    # _position_value check it (a usage error, exit 2).
+    parser.add_argument(flag, nargs="+", metavar=("I|FILE.mrk.json", "J K"), default=None,
+                        help=help + "; or a 3D Slicer markups file (.mrk.json, LPS or RAS)")
+
+
+def _position_value(flag: str, values: list[str] | None) -> list[float] | str | None:
+    """A position flag's values as three numbers or a markups file's path."""
+    from segsnake.errors import ConfigError
+
+    if values is None:
+        return None
+    if len(values) == 1:
+        return values[0]
+    try:
+        numbers = [float(v) for v in values]
+    except ValueError:
+        numbers = None
+    if numbers is None or len(numbers) != 3:
+        raise ConfigError(f"{flag} takes three numbers (I J K, or world mm with --world) or one "
+                          f"markups file, got {' '.join(values)!r}")
+    return numbers
+
+
 def add_segment_options(parser: argparse.ArgumentParser) -> None:
     """The options shared by ``segment`` and (as YAML keys) by ``batch`` cases."""
     g = parser.add_argument_group("initialization (voxel indices along the array axes, or world mm "
                                   "with --world)")
     g.add_argument("--shape", choices=("sphere", "cylinder"), default=None,
                    help="snake topology (default sphere)")
-    _vec3(g, "--center", ("I", "J", "K"), "sphere centre (default: estimated from the image)")
+    _position(g, "--center", "sphere centre (default: estimated from the image)")
     _vec3(g, "--radii", ("RI", "RJ", "RK"), "sphere radii (default: half the object's size)")
-    _vec3(g, "--axis-start", ("I", "J", "K"), "cylinder axis start point")
-    _vec3(g, "--axis-end", ("I", "J", "K"), "cylinder axis end point")
+    _position(g, "--axis-start", "cylinder axis start point (a markups file with two points: "
+                                 "start and end)")
+    _position(g, "--axis-end", "cylinder axis end point")
     g.add_argument("--radius", type=float, default=None,
                    help="cylinder radius (voxels across the axis, or mm with --world)")
     g.add_argument("--world", action="store_true", default=None,
@@ -43,7 +69,7 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                         "the mid-surface of a bright sheet; bright/dark take the inner face of a "
                         "bright/dark sheet that encloses the object")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
-    _vec3(m, "--seed-point", ("I", "J", "K"), "keep only the detected surface nearest this voxel")
+    _position(m, "--seed-point", "keep only the detected surface nearest this voxel")
     m.add_argument("--max-iter", type=int, default=None, help="iteration cap per stage (default 300)")
     m.add_argument("--volume", type=int, default=None, metavar="N", help="which volume of a 4D image")
     m.add_argument("--nan", choices=("refuse", "fill"), default=None,
@@ -91,10 +117,12 @@ OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "
 
 def config_from_args(args: argparse.Namespace):
     """SegmentConfig from defaults < ``--config`` YAML < command-line flags."""
-    from segsnake.config import SegmentConfig, load_segment_config
+    from segsnake.config import POSITION_KEYS, SegmentConfig, load_segment_config
 
     base = load_segment_config(args.config) if args.config else SegmentConfig()
     overrides = {k: getattr(args, k) for k in OPTION_KEYS}
+    for key in POSITION_KEYS:
+        overrides[key] = _position_value("--" + key.replace("_", "-"), overrides[key])
     if overrides["threshold"] is not None and overrides["threshold"] != "auto":
         try:
             overrides["threshold"] = float(overrides["threshold"])
