@@ -68,11 +68,10 @@ from segsnake.config import (
     LineDict,
     LineList,
     PATH_KEYS,
-    POSITION_KEYS,
     SegmentConfig,
     load_yaml,
     locate,
-    resolve_paths,
+    resolve_config_paths,
     suggest,
 )
 from segsnake.errors import ConfigError, InputError, OutputError, SegsnakeError
@@ -333,12 +332,11 @@ def load_batch(path: str | os.PathLike[str], *, output_dir: str | os.PathLike[st
             continue
         if bad:
             continue
-        config = dataclasses.replace(config, **resolve_paths(
-            {k: getattr(config, k) for k in PATH_KEYS}, base))
+        config = resolve_config_paths(config, base)
         where = {"image": locate(src, raw, "image")}
         if truth:
             where["truth"] = locate(src, raw, "truth")
-        for key in ("prior",) + POSITION_KEYS:  # the files among the options
+        for key in PATH_KEYS:  # the files among the options
             if isinstance(getattr(config, key), str):
                 where[key] = locate(src, merged, key)
         cases.append(BatchCase(

@@ -12,12 +12,12 @@ import os
 import re
 from typing import Any
 
-from segsnake.config import POSITION_KEYS
+from segsnake.config import PATH_KEYS
 from segsnake.errors import InputError
 
 __all__ = ["missing_inputs", "check_inputs"]
 
-ROLES = ("image", "truth", "prior") + POSITION_KEYS
+ROLES = ("image", "truth") + PATH_KEYS
 
 
 def _problem(path: str) -> str | None:
@@ -46,10 +46,10 @@ def missing_inputs(spec: Any) -> list[dict[str, Any]]:
     """
     found: dict[tuple[str, str], dict[str, Any]] = {}
     for case in spec.cases:
-        paths = {"image": case.image, "truth": case.truth, "prior": case.config.prior}
-        # Positions given as numbers are not files.
-        paths.update({key: value for key in POSITION_KEYS
-                      if isinstance(value := getattr(case.config, key), str)})
+        # Positions given as numbers are not files (a prior is always a path or None).
+        paths = {"image": case.image, "truth": case.truth,
+                 **{key: value for key in PATH_KEYS
+                    if isinstance(value := getattr(case.config, key), str)}}
         for role in ROLES:
             path = paths.get(role)
             if path is None:

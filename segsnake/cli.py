@@ -96,8 +96,9 @@ def _mute_output() -> None:
 
 
 def _report(command: str | None, want_json: bool, code: int, message: str,
-            exc: BaseException | None = None) -> int:
-    """One line on stderr and, with ``--json``, the error object on stdout; returns ``code``."""
+            exc: BaseException | None = None, verb: str = "error: ") -> int:
+    """One line on stderr (``verb`` before the message) and, with ``--json``, the error object on
+    stdout; returns ``code``."""
     from segsnake.commands.reporting import error_object, print_json
 
     where = f"segsnake {command}" if command else "segsnake"
@@ -110,7 +111,7 @@ def _report(command: str | None, want_json: bool, code: int, message: str,
                 kind=type(exc).__name__ if exc is not None else None,
                 details=seg.details if seg else None))
             sys.stdout.flush()
-        sys.stderr.write(f"{where}: error: {message}\n")
+        sys.stderr.write(f"{where}: {verb}{message}\n")
         sys.stderr.flush()
     except BrokenPipeError:
         _mute_output()
@@ -164,17 +165,7 @@ def main(argv: Sequence[str] | None = None, *,
             raise
         return _report(state["command"], state["json"], exc.exit_code, str(exc), exc)
     except KeyboardInterrupt:
-        try:
-            if state["json"]:
-                from segsnake.commands.reporting import error_object, print_json
-
-                print_json(error_object(state["command"], EXIT_INTERRUPTED, "interrupted"))
-                sys.stdout.flush()
-            where = f"segsnake {state['command']}" if state["command"] else "segsnake"
-            sys.stderr.write(f"{where}: interrupted\n")
-        except BrokenPipeError:
-            _mute_output()
-        return EXIT_INTERRUPTED
+        return _report(state["command"], state["json"], EXIT_INTERRUPTED, "interrupted", verb="")
     except MemoryError as exc:
         if state["debug"]:
             raise

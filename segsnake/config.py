@@ -503,6 +503,13 @@ def resolve_paths(options: dict[str, Any], base_dir: str | os.PathLike[str]) -> 
     return out
 
 
+def resolve_config_paths(config: "SegmentConfig", base_dir: str | os.PathLike[str]) -> "SegmentConfig":
+    """``config`` with its relative path options (:data:`PATH_KEYS`) made absolute against
+    ``base_dir`` (the YAML file's folder)."""
+    return dataclasses.replace(config, **resolve_paths(
+        {k: getattr(config, k) for k in PATH_KEYS}, base_dir))
+
+
 def load_segment_config(path: str | os.PathLike[str]) -> SegmentConfig:
     """Read ``segment --config FILE.yaml``: a flat mapping of :class:`SegmentConfig` options.
 
@@ -522,6 +529,4 @@ def load_segment_config(path: str | os.PathLike[str]) -> SegmentConfig:
     if not isinstance(data, LineDict):
         raise ConfigError(f"{locate(str(p), data)}: a segment config must be a mapping of "
                           f"option: value, got {_describe(data)}")
-    config = SegmentConfig.from_mapping(data, source=str(p))
-    return dataclasses.replace(config, **resolve_paths(
-        {k: getattr(config, k) for k in PATH_KEYS}, p.parent))
+    return resolve_config_paths(SegmentConfig.from_mapping(data, source=str(p)), p.parent)

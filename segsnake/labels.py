@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from segsnake.errors import InputError
 
-__all__ = ["truth_foreground", "describe_values", "label_map_warning"]
+__all__ = ["truth_foreground", "truth_mask", "describe_values", "label_map_warning"]
 
 # How many of a label map's values a message lists before "...".
 _SHOWN = 6
@@ -75,3 +75,13 @@ def truth_foreground(data: NDArray, label: int | None, path: str
     if nonzero.size and np.any(nonzero != nonzero[0]):
         return mask, np.unique(nonzero)
     return mask, None
+
+
+def truth_mask(data: NDArray, label: int | None, path: str, how: str
+               ) -> tuple[NDArray[np.bool_], list[str]]:
+    """:func:`truth_foreground` and, for an unlabelled label map, its warning.
+
+    ``how`` says how a user chooses a label (the caller's option, e.g. ``"--label N"``).
+    """
+    mask, values = truth_foreground(data, label, path)
+    return mask, [] if values is None else [label_map_warning(path, values, how)]

@@ -25,11 +25,11 @@ from numpy.typing import NDArray
 
 from segsnake.config import POSITION_KEYS
 from segsnake.errors import ConfigError, InputError
+from segsnake.io import _LPS_TO_RAS
 
 __all__ = ["read_markups", "resolve_markups", "is_markups_value"]
 
 # LPS <-> RAS: the first two world axes point the other way.
-_LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
 
 
 def is_markups_value(value: Any) -> bool:
@@ -64,7 +64,7 @@ def _points_of(markup: Any, path: str, n: int) -> list[NDArray]:
             raise InputError(f"{path}: markup {n}, control point {k}: position must be 3 finite "
                              f"numbers, got {pos!r}")
         p = np.asarray(pos, dtype=np.float64)
-        out.append(p * _LPS_TO_RAS if system == "LPS" else p)
+        out.append(_LPS_TO_RAS @ p if system == "LPS" else p)
     return out
 
 

@@ -51,7 +51,7 @@ def _existing_ancestor(path: str) -> str:
 
 
 def _check_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None],
-                   names: tuple[str, ...] = OUTPUT_NAMES) -> None:
+                   names: tuple[str, ...]) -> None:
     """Refuse, before any work, every output problem that can be seen in advance.
 
     Nothing is created here: a run that fails later (bad input, failed segmentation) leaves no
@@ -180,7 +180,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         metrics = evaluate_masks(result.mask, truth, volume.spacing)
         summary.update({k: (float(v) if np.isfinite(v) else None) for k, v in metrics.items()})
     t0 = time.perf_counter()
-    _write_outputs(out_dir, volume, result, config, summary, timings, overwrite, truth)
+    _write_outputs(out_dir, volume, result, config, summary, timings, overwrite, names, truth)
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["timings"] = timings
@@ -195,17 +195,13 @@ def _load_truth(path: str, volume, label: int | None, truth_label_option: str
                 ) -> tuple[np.ndarray, list[str]]:
     """The truth's foreground on the image's grid (one label of a label map) and its warnings."""
     from segsnake.io import load_volume
-    from segsnake.labels import label_map_warning, truth_foreground
+    from segsnake.labels import truth_mask
 
     truth = load_volume(path, bytes_per_voxel=None)
     if truth.shape != volume.shape or not np.allclose(truth.affine, volume.affine, atol=1e-4):
         raise InputError(f"{path}: truth mask is not on the grid of {volume.path} "
                          f"(shape {truth.shape} vs {volume.shape} or a different affine)")
-    mask, values = truth_foreground(truth.data, label, path)
-    warnings = []
-    if values is not None:
-        warnings.append(label_map_warning(path, values, truth_label_option))
-    return mask, warnings
+    return truth_mask(truth.data, label, path, truth_label_option)
 
 
 def _prior_energy(config):
@@ -277,7 +273,7 @@ def _remove_empty_dirs(created: list[str]) -> None:
             os.rmdir(d)  # only succeeds when empty: never removes anything else
 
 
-def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite,
+def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite, names,
                    truth=None) -> None:
     """Write every output into a staging directory, then move them into place together.
 
@@ -332,7 +328,7 @@ def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite,
                              result.mask, result.model, result.init_model, affine=volume.affine,
                              truth=truth, click=click_index(config, volume))
             current = out_dir
-            _commit(stage, out_dir, overwrite, output_names(config))
+            _commit(stage, out_dir, overwrite, names)
         except OSError as exc:
             raise OutputError(f"{current}: cannot write ({exc.strerror or exc})") from None
         ok = True
@@ -343,8 +339,7 @@ def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite,
             _remove_empty_dirs(created)
 
 
-def _commit(stage: str, out_dir: str, overwrite: bool,
-            names: tuple[str, ...] = OUTPUT_NAMES) -> None:
+def _commit(stage: str, out_dir: str, overwrite: bool, names: tuple[str, ...]) -> None:
     """Move the staged outputs into ``out_dir``: all of them, or (on any failure) none.
 
     Earlier outputs are first hard-linked (or copied) into the staging directory so that they

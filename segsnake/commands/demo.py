@@ -102,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
               f"Dice {_fmt(summary['dice'], '.4f')}, Jaccard {_fmt(summary['jaccard'], '.4f')}, "
               f"HD95 {_fmt(summary['hausdorff95_mm'], '.2f')} mm, "
               f"ASSD {_fmt(summary['assd_mm'], '.2f')} mm")
-    outputs = (f"outputs: {seg_dir}/mask.nii.gz surface.vtp snake.json qc.png" if kept else
+    names = " ".join(os.path.basename(p) for p in summary["outputs"].values())
+    outputs = (f"outputs: {seg_dir}/{names}" if kept else
                "outputs: not kept (segsnake demo --out DIR keeps the phantom and the segmentation)")
     if not kept:  # the files named there are gone
         summary = {k: v for k, v in summary.items() if k != "outputs"}

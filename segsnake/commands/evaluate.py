@@ -13,7 +13,7 @@ import argparse
 import math
 
 from segsnake.commands.reporting import add_output_options, emit, warn
-from segsnake.labels import label_map_warning, truth_foreground
+from segsnake.labels import truth_mask
 from segsnake.metrics import METRIC_KEYS, evaluate_masks, load_image_pair
 
 HELP = "compare a mask with a truth mask (Dice, Jaccard, volumes, surface distances in mm)"
@@ -60,10 +60,7 @@ def format_table(metrics: dict[str, float]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     pred, truth_values, spacing = load_image_pair(args.pred, args.truth)
-    truth, values = truth_foreground(truth_values, args.label, str(args.truth))
-    warnings = []
-    if values is not None:
-        warnings.append(label_map_warning(str(args.truth), values, "--label N"))
+    truth, warnings = truth_mask(truth_values, args.label, str(args.truth), "--label N")
     warn("evaluate", warnings)
     metrics = evaluate_masks(pred != 0, truth, spacing)
     record = {"pred": str(args.pred), "truth": str(args.truth), "label": args.label,
