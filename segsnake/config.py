@@ -42,6 +42,7 @@ FEATURES = ("edge", "surface")
 PRIOR_SPACES = ("affine", "linear", "similarity", "translation")
 NAN_POLICIES = ("refuse", "fill")
 POLARITIES = ("auto", "bright", "dark", "none")
+ENERGIES = ("auto", "region", "edge")
 M_MIN, M_MAX = 4, 200
 
 
@@ -354,6 +355,7 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "volume": _optional(lambda v: _int(v, low=0)),
     "nan": _choice(NAN_POLICIES),
     "polarity": _choice(POLARITIES),
+    "energy": _choice(ENERGIES),
     "mesh": _optional(_mesh_name),
 }
 
@@ -397,6 +399,7 @@ class SegmentConfig:
     volume: int | None = None
     nan: str = "refuse"
     polarity: str = "auto"
+    energy: str = "auto"  # segsnake.pipeline.region_energy: region for a sphere, else edge
     mesh: str | None = None  # the surface also as NAME.stl/.obj/.ply in the output directory
 
     # -- construction -------------------------------------------------------------------------

@@ -26,6 +26,7 @@ fold-refusing L-BFGS of :mod:`segsnake.optimize`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -78,6 +79,9 @@ QUADRATURE_RTOL_RUNNING = 2e-2
 #: Tension of cylinder snakes per mm^2 of lateral surface, in units of the edge map's peak,
 #: applied as a pull along the axis (see :func:`_stage_energy`).
 CYLINDER_TENSION = 0.2
+#: The region stages refuse steps that shrink the surface below this fraction of its start's
+#: volume (see :class:`_Admissible`); the optimizer's end check uses the same fraction.
+MIN_VOLUME_FRACTION = 0.02
 
 
 @dataclass
@@ -280,7 +284,8 @@ def _polarity(model: SplineSurface, gradient: NDArray, spacing: Sequence[float])
 
 def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
                    index_from_world: Callable[[NDArray], NDArray] | None = None,
-                   progress: Progress | None = None, extra_energy=None) -> SegmentResult:
+                   progress: Progress | None = None, extra_energy=None,
+                   region_params=None) -> SegmentResult:
     """Segment one structure in ``image`` with the options of ``config`` (a SegmentConfig).
 
     Parameters
@@ -297,6 +302,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         Progress reports in [0, 1].
     extra_energy : callable(model) -> Energy, optional
         Added to every stage (the shape prior plugs in here).
+    region_params : segsnake.region.RegionParams, optional
+        The region energy's constants (default ``RegionParams()``).
     """
     sp = tuple(float(s) for s in spacing)
     t0 = time.perf_counter()
@@ -307,6 +314,9 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         # outside the volume: it picks the edge component nearest to it.)
         seed = _voxel_index(config, config.seed_point, index_from_world)
         config = config.replace(seed_point=[float(x) for x in seed])
+    if region_energy(config):
+        return _segment_region(image, sp, config, model, progress, extra_energy, init_s,
+                               region_params)
     frame = flux_frame(model, sp, image.shape)
     if frame is None:
         return _segment(image, sp, config, model, progress, extra_energy, init_s)
@@ -335,6 +345,116 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         res.settings["integration_axis"] = int(frame.perm[0])
     res.settings["integration_direction"] = frame.integration_direction
     return res
+
+
+def region_energy(config) -> bool:
+    """Does ``config`` segment with the region energy (:func:`_segment_region`)?
+
+    ``energy: auto`` chooses it for a sphere around a filled object (``feature: edge``); a thin
+    sheet (``feature: surface``), a cylinder and a ``seed_point`` (which picks one of the edge
+    map's surfaces) keep the edge stages (docs/design.md).
+    """
+    if config.energy == "auto":
+        return config.shape == "sphere" and config.feature == "edge" and config.seed_point is None
+    if config.energy == "region" and (config.shape != "sphere" or config.feature != "edge"):
+        raise ConfigError("energy: region segments a sphere around a filled object "
+                          "(shape: sphere, feature: edge)")
+    return config.energy == "region"
+
+
+def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
+                    params=None) -> SegmentResult:
+    """The region energy from the click (:mod:`segsnake.region`, docs/design.md).
+
+    1. *Intensity model*: the robust Gaussian of the smoothed image in the click's core.
+    2. *Region*: the surface minimizes the volume integral of ``w``, the click's Gaussian
+       against a uniform outside: it fills what looks like the click and stops where the
+       intensity leaves the click's band, a little inside a blurred step.
+    3. *Two classes*: the outside's mean is read just outside that surface, averaged along it;
+       the same minimization with the inside's Gaussian against that local outside one puts the
+       surface at the midpoint intensity between the two, i.e. on the step (plus, with
+       ``edge_length_mm``, the flux of ``grad I`` over the step's peak gradient).
+    """
+    from segsnake import region as rg
+    from segsnake.rasterize import rasterize
+
+    p = params or rg.RegionParams()
+    report = progress or (lambda stage, frac: None)
+    run = _Run(config, sp, image.shape, extra_energy, p)
+    init = model
+    run.timings["init_s"] = init_s
+    t0 = time.perf_counter()
+    image_s = rg.smoothed(image, sp, p.smooth_mm)
+    intensity = rg.IntensityModel.from_samples(
+        image_s[_click_core(model, image.shape, sp, p.core_fraction)], rg.image_range(image_s),
+        p.min_sigma_fraction)
+    w_click = rg.region_density(image_s, intensity)
+    run.timings["edge_map_s"] = time.perf_counter() - t0
+    report("region", 0.1)
+    model = run.region(model, w_click, "region")
+    report("two classes", 0.5)
+
+    for k in range(p.two_class_rounds + 1):
+        # The outside, read beyond the current surface; after the last round it scores the
+        # result (an inside that does not differ from its outside found no boundary).
+        t0 = time.perf_counter()
+        inside = rasterize(model, image.shape, sp)
+        if not inside.any():
+            raise SegmentationError("the surface encloses no voxel centre")
+        shell = distance_to(inside, sp)
+        shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
+        if not shell.any():
+            raise SegmentationError("the surface filled the whole image: no outside to compare")
+        contrast, polarity = rg.step_contrast(image_s, inside, shell)
+        if contrast < p.min_separation * intensity.sigma:
+            raise SegmentationError(
+                f"no boundary found: inside and outside the surface differ by {contrast:.3g}, "
+                f"{contrast / intensity.sigma:.2f} x the click's spread; check the initialization")
+        if config.polarity in ("bright", "dark"):
+            polarity = 1 if config.polarity == "bright" else -1
+        if k == p.two_class_rounds:
+            break
+        mu_out = rg.local_outside_mean(image_s, shell, sp, p.outside_smooth_mm)
+        del inside, shell
+        w = rg.two_class_density(image_s, intensity, mu_out)
+        if p.combine == "max":
+            np.maximum(w, w_click, out=w)
+        elif p.combine == "blend":
+            # where the outside differs from the inside by a few spreads, the two classes; where
+            # it looks like the inside, the click's band
+            a = np.clip((np.abs(mu_out - np.float32(intensity.mu)) / np.float32(intensity.sigma)
+                         - 1.0) / 2.0, 0.0, 1.0)
+            w = a * w + (1 - a) * w_click
+        del mu_out
+        if p.edge_length_mm > 0:
+            w += rg.edge_density(image, sp, polarity, contrast, p.edge_length_mm,
+                                 p.edge_smooth_mm)
+        run.timings["edge_map_s"] += time.perf_counter() - t0
+        model = run.region(model, w, f"two classes, round {k + 1}")
+        del w
+    t0 = time.perf_counter()
+    mask = _final_mask(model, image.shape, sp)
+    run.timings["mask_s"] = time.perf_counter() - t0
+    report("done", 1.0)
+    settings = {"energy": "region", "intensity_model": intensity.to_dict(),
+                "contrast": contrast, "separation": contrast / intensity.sigma,
+                "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
+    return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
+                         run.timings, "bright" if polarity > 0 else "dark", init, settings)
+
+
+def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:
+    """The voxels of the initial surface shrunk by ``fraction`` about its centre (grown back
+    towards the whole surface until it holds enough voxels for a spread)."""
+    from segsnake.rasterize import rasterize
+    from segsnake.region import MIN_SAMPLES
+
+    center = model.control_points().reshape(-1, 3).mean(axis=0)
+    for f in (fraction, 0.5 * (1 + fraction), 1.0):
+        core = rasterize(model.transformed(f * np.eye(3), (1 - f) * center), shape, spacing)
+        if core.sum() >= MIN_SAMPLES:
+            break
+    return core
 
 
 def _default_scale(spacing: Sequence[float]) -> float:
@@ -466,8 +586,9 @@ def _discard(em, keep: NDArray | None) -> None:
 class _Run:
     """The stages of one segmentation, with their history and timings."""
 
-    def __init__(self, config, spacing, shape, extra_energy) -> None:
+    def __init__(self, config, spacing, shape, extra_energy, region_params=None) -> None:
         self.config, self.sp, self.extra = config, spacing, extra_energy
+        self.region_params = region_params
         self.bounds = (np.asarray(shape) - 1) * np.asarray(spacing)
         self.history: list[dict[str, Any]] = []
         self.iterations = 0
@@ -476,6 +597,21 @@ class _Run:
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None):
         model, res = _run_stage(model, lookup, -1.0, self.config, self.bounds, self.extra, band,
                                 feature_mm, tol, node_spacing)
+        self.timings["optimize_s"] += res["time_s"]
+        self.iterations += res["iterations"]
+        self.history.append({"stage": name, **res})
+        return model
+
+    def region(self, model, density: NDArray, name: str):
+        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`)."""
+        from segsnake.lookup import Lookup
+
+        t0 = time.perf_counter()
+        lookup = Lookup.from_field(density, self.sp, divergence_of_gradient=False)
+        self.timings["lookup_s"] += time.perf_counter() - t0
+        p = self.region_params
+        model, res = _run_stage(model, lookup, 1.0, self.config, self.bounds, self.extra,
+                                p.step_mm, p.edge_smooth_mm, region=True)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         self.history.append({"stage": name, **res})
@@ -576,7 +712,7 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
-               node_spacing=None):
+               node_spacing=None, region=False):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -590,6 +726,10 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     ``QUADRATURE_RTOL_RUNNING``, and a failure ends it (:class:`_QuadratureCheck`). A stage
     stopped by the iteration cap is checked too; ``quadrature_resolved`` in its history says
     whether the last check agreed (``segment`` warns when not).
+
+    ``region``: the lookup integrates a volume density (:mod:`segsnake.region`), which moves the
+    surface far from its start: the fold check follows the surface (:class:`_Admissible`) and
+    the bending is weighted for a volume energy (:func:`_stage_energy`).
     """
     t0 = time.perf_counter()
     iterations, evaluations, history, checks = 0, 0, [], []
@@ -600,11 +740,12 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
                       for length, lo in zip(max_interval, floor))
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
-        energy = _stage_energy(model, lookup, weight, order, extra_energy)
+        energy = _stage_energy(model, lookup, weight, order, extra_energy, region)
         check = _QuadratureCheck(energy.terms[0], fine, checks, model.params)
+        admissible = _Admissible(model, max_interval, follow=region)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
                               tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
-                              admissible=_Admissible(model, max_interval), callback=check.during)
+                              admissible=admissible, callback=admissible.following(check.during))
         model, final_energy = res.model, res.energy
         iterations += res.iterations
         evaluations += res.evaluations
@@ -695,11 +836,21 @@ class _Admissible:
     whole refinements: a ball and an ellipsoid phantom of 48 stopped at Dice 0.90 and 0.84, and
     changes of 1e-13 in the gradient decided which phantoms did. Left out, they converge to
     surfaces with every normal within 40 degrees of radial.)
+
+    ``follow``: for a stage that moves the surface far (the region energy grows a click into a
+    whole brain), the normals are compared with the last accepted iterate's instead of the
+    start's (its lobes legitimately turn normals by more than 90 degrees: measured on the
+    Colin27 brain, the start's check stopped the growth at a tenth of the volume), and a step
+    that shrinks the volume below :data:`MIN_VOLUME_FRACTION` of the start's is refused (a
+    surface that collapses through itself turns no normal by 90 degrees in one step).
     """
 
-    def __init__(self, start: SplineSurface, max_interval: NDArray, per_interval: int = 3) -> None:
+    def __init__(self, start: SplineSurface, max_interval: NDArray, per_interval: int = 3,
+                 follow: bool = False) -> None:
         self.start = start
         self.max_interval = max_interval
+        self.follow = follow
+        self.min_volume = MIN_VOLUME_FRACTION * abs(start.volume(order=4)) if follow else None
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
         # Two intervals at each pole (one when M2 = 4: two would leave no row to check).
         skip = per_interval * min(2, (start.m2 - 1) // 2) if start.kind == "sphere" else 0
@@ -715,10 +866,25 @@ class _Admissible:
     def __call__(self, params: NDArray) -> bool:
         if np.any(longest_intervals(self.start, params) > self.max_interval):
             return False
+        if self.min_volume is not None and \
+                self.start.with_params(params).volume(order=4) < self.min_volume:
+            return False
         return bool(np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0))
 
+    def following(self, callback: Callable[[int, float, NDArray], bool]):
+        """The optimizer's callback: with ``follow``, each accepted iterate becomes the
+        reference of the fold check before ``callback`` runs."""
+        if not self.follow:
+            return callback
 
-def _stage_energy(model, lookup, weight, order, extra_energy) -> SumEnergy:
+        def accept(iteration: int, energy: float, params: NDArray) -> bool:
+            self.n0 = self._normals(params)
+            return callback(iteration, energy, params)
+
+        return accept
+
+
+def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> SumEnergy:
     """The stage's energy; its first term is the image's :class:`FluxTerm`."""
     flux = FluxTerm(model, lookup, weight=weight, order=order)
     terms = [flux]
@@ -732,7 +898,9 @@ def _stage_energy(model, lookup, weight, order, extra_energy) -> SumEnergy:
         # n7_rf40, Dice 0.906 -> 0.960 with the area).
         area = abs(model.area(order=4))
         r = _model_radius(model)
-        terms.append(BendingRegularizer(model, weight=REGULARIZATION * area / r ** 2))
+        # A volume density's energy on its boundary is about the volume, r / 3 per mm^2.
+        scale = r / 3 if region else 1.0
+        terms.append(BendingRegularizer(model, weight=REGULARIZATION * scale * area / r ** 2))
     if model.kind == "cylinder":
         # The open ends feel no flux: without tension they drift past the ends of the
         # structure. Tension makes a tube's length without edge support cost a fraction of what
@@ -744,5 +912,18 @@ def _stage_energy(model, lookup, weight, order, extra_energy) -> SumEnergy:
         perimeter = 2 * math.pi * _model_radius(model)
         terms.append(AxialTension(model, weight=CYLINDER_TENSION * perimeter))
     if extra_energy is not None:
-        terms.append(extra_energy(model))
+        # The prior's weight is relative to the image energy, scaled like the bending.
+        terms.append(_Scaled(extra_energy(model), r / 3) if region else extra_energy(model))
     return SumEnergy(terms)
+
+
+@dataclass
+class _Scaled:
+    """``factor`` times an energy."""
+
+    energy: Any
+    factor: float
+
+    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+        value, grad = self.energy.value_and_grad(params)
+        return self.factor * value, self.factor * grad

@@ -317,7 +317,8 @@ CASES = [
     ("4D", _four_d, INIT, 3, ["4D image with 3 volumes", "--volume N (0..2)"]),
     ("4D bad volume", _four_d, INIT + ["--volume", "5"], 3, ["--volume 5 is out of range"]),
     ("constant, auto init", _constant, [], 4, ["constant"]),
-    ("constant, given init", _constant, INIT, 4, ["no edges found at scale"]),
+    ("constant, given init", _constant, INIT + ["--energy", "edge"], 4, ["no edges found at scale"]),
+    ("constant, region energy", _constant, INIT, 4, ["the image is constant"]),
     ("zero spacing", _zero_spacing, INIT, 3, ["spacing", "must be > 0"]),
     ("centre outside", _ball_image, ["--center", "40", "5", "5", "--radii", "3", "3", "3"], 2,
      ["--center", "outside the volume"]),
@@ -329,8 +330,11 @@ CASES = [
      ["--shape", "cylinder", "--axis-start", "11", "12", "4", "--axis-end", "11", "12", "20",
       "--radius", "0"], 2, ["radius"]),
     ("m1 3", _ball_image, INIT + ["--m1", "3"], 2, ["m1", ">= 4"]),
-    ("only edges inside the initial sphere", _dot, ["--center", "12", "12", "12", "--radii", "6", "6", "6"], 4,
+    ("only edges inside the initial sphere", _dot,
+     ["--center", "12", "12", "12", "--radii", "6", "6", "6", "--energy", "edge"], 4,
      ["no edges found outside the initial surface"]),
+    ("a dot, region energy", _dot, ["--center", "12", "12", "12", "--radii", "6", "6", "6"], 4,
+     ["left the volume"]),
 ]
 
 

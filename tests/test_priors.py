@@ -328,7 +328,9 @@ def test_sphere_prior_keeps_the_snake_out_of_a_touching_neighbour():
 
     ph, image = _ball_with_touching_neighbour()
     init = perturbed_init(ph, 26)  # the suggested start, perturbed (issue 14)
-    config = SegmentConfig().replace(center=init["center"], radii=init["radii"])
+    # The edge stages: the region energy fills the neighbour as well (measured: free 0.008,
+    # held 0.81 at weight 1; docs/benchmarks.md).
+    config = SegmentConfig().replace(center=init["center"], radii=init["radii"], energy="edge")
     free = segment_volume(image, ph.spacing, config)
 
     def prior(model):

@@ -6,6 +6,7 @@ import argparse
 import os
 
 from segsnake.commands import positive_int
+from segsnake.config import ENERGIES
 from segsnake.commands.reporting import add_output_options, emit, progress_off, warn
 
 HELP = "segment one structure in a 3D image with a spline snake"
@@ -68,6 +69,10 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                         "surroundings, auto detects it, none ignores it. surface mode: auto/none fit "
                         "the mid-surface of a bright sheet; bright/dark take the inner face of a "
                         "bright/dark sheet that encloses the object")
+    m.add_argument("--energy", choices=ENERGIES, default=None,
+                   help="region: the click's intensities against the rest of the image, then "
+                        "the step (a sphere around a filled object; auto's choice there); edge: "
+                        "the edge-map stages (auto's choice for cylinders and --feature surface)")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
     _position(m, "--seed-point", "keep only the detected surface nearest this voxel")
     m.add_argument("--max-iter", type=int, default=None, help="iteration cap per stage (default 300)")
@@ -111,7 +116,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "world", "m1", "m2",
-               "scale", "feature", "polarity", "threshold", "seed_point", "max_iter", "volume", "nan",
+               "scale", "feature", "polarity", "energy", "threshold", "seed_point", "max_iter", "volume", "nan",
                "prior", "prior_weight", "prior_space", "mesh")
 
 

@@ -1,0 +1,190 @@
+"""The region energy: what the object looks like inside, as a density whose volume integral the
+snake minimizes (docs/design.md, "The region energy").
+
+The user's click says what the object looks like: the intensities inside the initial surface
+give a robust Gaussian model ``N(mu, sigma)`` (median and 1.4826 x MAD of the image smoothed at
+:data:`REGION_SMOOTH_MM`). Nothing is assumed about the outside but that it lies somewhere in
+the image's range ``R`` (max - min): a uniform density ``1 / R``. A voxel's
+evidence for the outside is the log-likelihood ratio
+
+    llr(x) = -log N(I(x); mu, sigma) + log(1 / R)
+           = z^2 / 2 + log(sigma sqrt(2 pi) / R),        z = (I(x) - mu) / sigma,
+
+negative for intensities within ``sqrt(2 log(R / (sigma sqrt(2 pi))))`` sigma of the click's
+and positive beyond. Its volume integral over the inside is the region energy; bounded as
+``w = tanh(llr / 2)`` (about ``llr / 2`` near the boundary, at most 1 per mm^3 far from it), so
+that a few voxels of very different intensity (a vessel, a calcification) count as a few
+voxels, not as a wall. Like every image term here it is one lookup pre-integrated along x
+(:meth:`segsnake.lookup.Lookup.from_field`), so its value on a surface is a surface integral.
+
+The region energy finds the object from inside, whatever its size, with no distance field and
+no trap on internal edges; it places the surface where the intensity leaves the click's band.
+An edge term then moves it onto the step: the flux of ``grad I`` through the surface (the
+volume integral of ``lap I``) divided by the peak gradient ``g`` of a step of the measured
+contrast ``C``, which is about minus the area on a step of the right polarity, weighted by
+:data:`EDGE_LENGTH_MM`. Both are one density, ``h = w + s * EDGE_LENGTH_MM * lap(I) / g``
+(``s`` = +1 for a bright object, -1 for a dark one).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from segsnake.errors import SegmentationError
+from segsnake.parallel import gaussian_filter
+
+__all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
+           "local_outside_mean", "two_class_density", "edge_density", "step_contrast"]
+
+@dataclass(frozen=True)
+class RegionParams:
+    """The region energy's constants, each with its unit and meaning (docs/design.md; the
+    sweeps that chose them are in docs/benchmarks.md)."""
+
+    #: Gaussian smoothing (standard deviation, mm) of the image the intensity model reads:
+    #: averages the noise over about a voxel of a 1 mm scan, finer than the structures asked for.
+    smooth_mm: float = 1.0
+    #: Smoothing (mm) of the image whose Laplacian the edge term integrates.
+    edge_smooth_mm: float = 1.5
+    #: Weight of the edge term, a length (mm): one mm^2 of surface on a step gains about as much
+    #: as this many mm^3 of the region term (0: no edge term).
+    edge_length_mm: float = 0.0
+    #: The outside's intensity is read in the voxels between ``shell_gap_mm`` and ``shell_mm``
+    #: outside the current surface: beyond the smoothing width, where the step has ended ...
+    shell_gap_mm: float = 1.0
+    shell_mm: float = 4.0
+    #: ... and averaged along the surface over this width (mm): the outside changes along a
+    #: structure (white matter on one side, CSF on the other), not within a few mm.
+    outside_smooth_mm: float = 5.0
+    #: Two-class stages, each reading the outside afresh beyond the previous one's surface (a
+    #: surface inside the step reads part of the object as outside, which pulls it inwards).
+    two_class_rounds: int = 3
+    combine: str = "blend"
+    #: Longest move of the surface per optimizer step (mm): about the smoothing widths, so that a
+    #: step cannot jump across a boundary it has not seen.
+    step_mm: float = 2.0
+    #: Below this contrast between inside and outside, in units of the click's spread, the
+    #: first stage found no boundary (a step of one spread is what noise alone gives).
+    min_separation: float = 1.0
+    #: Smallest spread of the intensity model, as a fraction of the image's range: intensities
+    #: closer than this are one tissue (a noise-free image has no spread at all).
+    min_sigma_fraction: float = 0.01
+    #: The click's intensities are read within this fraction of its radius from its centre (the
+    #: centre is what a click places best; a perturbed or generous radius reaches outside).
+    core_fraction: float = 0.5
+
+
+#: Fewest voxels the click's intensity model is estimated from (a sphere around the click's
+#: centre grows until it holds them): below ~20 samples the MAD is not a spread.
+MIN_SAMPLES = 20
+
+
+@dataclass(frozen=True)
+class IntensityModel:
+    """The inside's robust Gaussian ``N(mu, sigma)`` and the image's range ``R`` (the outside's
+    uniform density is ``1 / R``), all in image units."""
+
+    mu: float
+    sigma: float
+    range: float
+
+    @classmethod
+    def from_samples(cls, inside: NDArray, image_range: float,
+                     min_sigma_fraction: float = RegionParams.min_sigma_fraction
+                     ) -> "IntensityModel":
+        """Median and 1.4826 x MAD (at least ``min_sigma_fraction`` of the range) of ``inside``
+        (the smoothed image under the click)."""
+        inside = np.asarray(inside, dtype=np.float64)
+        if inside.size < MIN_SAMPLES:
+            raise SegmentationError(f"the click holds {inside.size} voxels; the intensity model "
+                                    f"needs at least {MIN_SAMPLES}: give a larger radius")
+        if not image_range > 0:
+            raise SegmentationError("the image is constant: no intensity model")
+        mu = float(np.median(inside))
+        sigma = max(1.4826 * float(np.median(np.abs(inside - mu))),
+                    min_sigma_fraction * image_range)
+        return cls(mu, sigma, float(image_range))
+
+    def to_dict(self) -> dict[str, float]:
+        return {"mu": self.mu, "sigma": self.sigma, "range": self.range}
+
+
+def smoothed(image: NDArray, spacing: Sequence[float], sigma_mm: float) -> NDArray:
+    """The image (float32) smoothed by a Gaussian of ``sigma_mm`` along every axis."""
+    return gaussian_filter(np.asarray(image, dtype=np.float32),
+                           [sigma_mm / s for s in spacing], mode="nearest")
+
+
+def image_range(image_s: NDArray) -> float:
+    """The (smoothed) image's range, max - min: what the outside's uniform density spans. (A
+    percentile range is 0 on a binary image of a small structure; the smoothing has already
+    removed single-voxel outliers, and ``R`` enters the density only through its logarithm.)"""
+    return float(np.max(image_s)) - float(np.min(image_s))
+
+
+def region_density(image_s: NDArray, model: IntensityModel) -> NDArray:
+    """``w = tanh(llr / 2)`` per voxel (float32, see the module docstring)."""
+    out = np.empty(image_s.shape, dtype=np.float32)
+    offset = np.float32(math.log(model.sigma * math.sqrt(2 * math.pi) / model.range))
+    inv = np.float32(1.0 / model.sigma)
+    for i in range(image_s.shape[0]):  # plane by plane: no float64 copy of the volume
+        z = (image_s[i] - np.float32(model.mu)) * inv
+        out[i] = np.tanh(np.float32(0.25) * z * z + np.float32(0.5) * offset)
+    return out
+
+
+def step_contrast(image_s: NDArray, inside: NDArray, shell: NDArray) -> tuple[float, int]:
+    """Contrast ``C`` and polarity (+1: the object is brighter) of the step between the voxels
+    ``inside`` and those of a ``shell`` just outside, from their medians."""
+    a, b = float(np.median(image_s[inside])), float(np.median(image_s[shell]))
+    return abs(a - b), (1 if a >= b else -1)
+
+
+def local_outside_mean(image_s: NDArray, shell: NDArray, spacing: Sequence[float],
+                       smooth_mm: float) -> NDArray:
+    """The outside's mean intensity near each voxel (float32): the image averaged over the
+    ``shell`` voxels with a Gaussian of ``smooth_mm`` (normalized convolution); far from the
+    shell, where the weights vanish, the shell's median."""
+    sigma = [smooth_mm / s for s in spacing]
+    weight = gaussian_filter(shell.astype(np.float32), sigma, mode="nearest")
+    total = gaussian_filter(np.where(shell, image_s, np.float32(0)), sigma, mode="nearest")
+    fallback = np.float32(np.median(image_s[shell]))
+    floor = np.float32(1e-3)
+    return np.where(weight > floor, total / np.maximum(weight, floor), fallback)
+
+
+def two_class_density(image_s: NDArray, model: IntensityModel, outside_mean: NDArray) -> NDArray:
+    """``tanh(llr / 2)`` of the inside's Gaussian against a local outside one of the same spread
+    centred on ``outside_mean``: ``llr = ((I - mu)^2 - (I - mu_out)^2) / (2 sigma^2)``, zero at
+    the midpoint between the two means, which on a step blurred symmetrically is the step."""
+    inv = np.float32(1.0 / (4.0 * model.sigma ** 2))
+    mu = np.float32(model.mu)
+    out = np.empty(image_s.shape, dtype=np.float32)
+    for i in range(image_s.shape[0]):  # plane by plane: no float64 copy of the volume
+        a = image_s[i] - mu
+        b = image_s[i] - outside_mean[i]
+        out[i] = np.tanh((a * a - b * b) * inv)
+    return out
+
+
+def edge_density(image: NDArray, spacing: Sequence[float], polarity: int, contrast: float,
+                 length_mm: float, smooth_mm: float) -> NDArray:
+    """``polarity * length_mm * lap(I_s) / g`` (float32; ``I_s`` smoothed at ``smooth_mm``,
+    ``g = contrast / (sqrt(2 pi) smooth_mm)`` the peak gradient of a sharp step of that
+    contrast after the smoothing): its volume integral is ``length_mm / g`` times the flux of
+    ``grad I_s`` through the surface, about ``-length_mm`` per mm^2 on a step of the given
+    polarity (less on a step blurred beyond ``smooth_mm``)."""
+    from segsnake.features import gaussian_derivatives
+
+    d = gaussian_derivatives(image, spacing, smooth_mm, [(2, 0, 0), (0, 2, 0), (0, 0, 2)])
+    lap = d.pop((2, 0, 0))
+    for v in d.values():
+        lap += v
+    peak_gradient = contrast / (math.sqrt(2 * math.pi) * smooth_mm)
+    lap *= np.float32(polarity * length_mm / peak_gradient)
+    return lap
