@@ -55,6 +55,11 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                    help="cylinder radius (voxels across the axis, or mm with --world)")
     g.add_argument("--world", action="store_true", default=None,
                    help="positions and radii are in the image's world millimetres")
+    g.add_argument("--init", default=None, metavar="SNAKE.json",
+                   help="start from a saved snake instead of a new sphere or cylinder: a "
+                        "snake.json, or a markups file written by export-points (perhaps edited "
+                        "in Slicer); placed by world coordinates, resampled to --m1/--m2 when "
+                        "given; the rough-start stages are skipped")
     m = parser.add_argument_group("model and features")
     m.add_argument("--m1", type=int, default=None, help="control points around (default 9 sphere, 8 cylinder)")
     m.add_argument("--m2", type=int, default=None, help="control points along (default 9 sphere, 4 cylinder)")
@@ -112,7 +117,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "world", "m1", "m2",
                "scale", "feature", "polarity", "threshold", "seed_point", "max_iter", "volume", "nan",
-               "prior", "prior_weight", "prior_space", "mesh")
+               "prior", "prior_weight", "prior_space", "mesh", "init")
 
 
 def config_from_args(args: argparse.Namespace):
