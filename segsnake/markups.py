@@ -69,23 +69,8 @@ def _points_of(markup: Any, path: str, n: int) -> list[tuple[NDArray, dict]]:
 
 
 def read_markups(path: str) -> NDArray:
-    """The control points of a Slicer markups file as RAS world millimetres.
-
-    Parameters
-    ----------
-    path : str
-        A ``.mrk.json`` file. Every markup in it contributes its defined control points, in order.
-
-    Returns
-    -------
-    ndarray, shape (N, 3)
-        N >= 1 points, RAS world mm (LPS points converted).
-
-    Raises
-    ------
-    InputError
-        See :func:`read_control_points`.
-    """
+    """The control points of a Slicer markups file as RAS world millimetres, shape (N, 3): the
+    positions of :func:`read_control_points` (same parameter, same errors)."""
     return read_control_points(path)[0]
 
 

@@ -22,6 +22,8 @@ What the markups file holds, so that Slicer keeps it when it saves the list agai
 
 The markup is a standard ``Fiducial`` list (schema ``markups-schema-v1.0.3``) with
 ``fixedNumberOfControlPoints`` set, so Slicer lets the user move points but not add or delete them.
+Slicer reads and writes each control point's ``id``, ``label``, ``description`` and ``position``
+(``vtkMRMLMarkupsJsonStorageNode``), so the file survives being loaded, edited and saved there.
 """
 
 from __future__ import annotations
@@ -134,7 +136,8 @@ def snake_markups(world: SplineSurface, system: str = "LPS", name: str = "segsna
         points.append({
             "id": str(n + 1), "label": label, "description": json.dumps(desc),
             "associatedNodeID": "", "position": (flip @ world.params[row]).tolist(),
-            "orientation": [-1.0, -0.0, -0.0, -0.0, -1.0, -0.0, 0.0, 0.0, 1.0],
+            # Slicer's default (RAS identity) in the file's coordinate system.
+            "orientation": flip.ravel().tolist(),
             "selected": True, "locked": False, "visibility": True, "positionStatus": "defined"})
     markup = {"type": "Fiducial", "name": name, "coordinateSystem": system,
               "coordinateUnits": "mm", "locked": False, "fixedNumberOfControlPoints": True,
