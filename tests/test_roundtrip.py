@@ -242,7 +242,7 @@ def one_line(err: str, command: str, *needles: str) -> None:
 def test_bad_snake_files(ball, tmp_path, capsys):
     """A markups file with a point deleted, one without the segsnake descriptions (clicks), a
     model without a grid and a missing file: exit 3, one line naming the file, nothing written;
-    --init with --center: exit 2; an existing output: exit 5."""
+    --init with --center or --shape: exit 2; an existing output: exit 5."""
     _, image, seg = ball
     points = tmp_path / "points.mrk.json"
     assert main(["export-points", str(seg / "snake.json"), "--out", str(points), "-q"]) == 0
@@ -271,6 +271,10 @@ def test_bad_snake_files(ball, tmp_path, capsys):
                                  "--center", 10, 10, 10], capsys)
     assert rc == 2
     one_line(err, "segment", "init starts from a saved snake; center")
+    rc, _, err = run("segment", [image, "--out", tmp_path / "o", "--init", seg / "snake.json",
+                                 "--shape", "cylinder"], capsys)
+    assert rc == 2
+    one_line(err, "segment", "--shape does not apply with --init")
     rc, _, err = run("export-points", [seg / "snake.json", "--out", points], capsys)
     assert rc == 5
     one_line(err, "export-points", "already exists")

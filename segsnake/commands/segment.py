@@ -167,6 +167,10 @@ def run(args: argparse.Namespace) -> int:
     threads()  # a bad SEGSNAKE_NUM_THREADS stops here, before any work
 
     config = config_from_args(args)
+    if config.init is not None and args.shape is not None:
+        # The saved snake is a sphere or a cylinder already: a --shape would be silently ignored.
+        raise ConfigError(f"--shape does not apply with --init (the snake in {config.init} "
+                          f"keeps its kind)")
     if args.truth_label is not None and args.truth is None:
         raise ConfigError("--truth-label needs --truth (the label map it selects from)")
     progress, bar = progress_reporter(progress_off(args))
