@@ -474,7 +474,8 @@ class SegmentConfig:
         if self.init is not None:
             given = [k for k in SHAPE_KEYS if getattr(self, k) is not None]
             if given:
-                return "init", (f"init starts from a saved snake; {', '.join(given)} describe a "
+                verb = "describes" if len(given) == 1 else "describe"
+                return "init", (f"init starts from a saved snake; {', '.join(given)} {verb} a "
                                 f"new initial shape: give one or the other")
         if isinstance(self.axis_start, list) and isinstance(self.axis_end, list):
             length = math.dist(self.axis_start, self.axis_end)

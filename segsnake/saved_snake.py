@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from segsnake.config import M_MAX, M_MIN
 from segsnake.errors import InputError
 from segsnake.io import _LPS_TO_RAS
 from segsnake.markups import document_points, read_json
@@ -168,11 +169,12 @@ def _model_from_markups(doc: Any, path: str) -> SplineSurface:
                          f"description (segsnake export-points writes them; a markups file of "
                          f"clicks goes to --center, --seed-point or --axis-start)")
     kind, m1, m2 = first.get("kind"), first.get("m1"), first.get("m2")
-    try:
-        template = _KINDS[kind].unit(int(m1), int(m2))
-    except (KeyError, TypeError, ValueError):
-        raise InputError(f"{path}: not a segsnake snake (kind {kind!r}, M1 {m1!r}, M2 {m2!r})") \
-            from None
+    sizes_ok = all(isinstance(m, int) and not isinstance(m, bool) and M_MIN <= m <= M_MAX
+                   for m in (m1, m2))
+    if kind not in _KINDS or not sizes_ok:
+        raise InputError(f"{path}: not a segsnake snake (kind {kind!r}, M1 {m1!r}, M2 {m2!r}; "
+                         f"expected sphere or cylinder, M between {M_MIN} and {M_MAX})")
+    template = _KINDS[kind].unit(m1, m2)
     rows = dict(_position_rows(kind, template.m1, template.m2))
     if len(points) != len(rows):
         raise InputError(f"{path}: holds {len(points)} control points, but a {kind} snake with "
@@ -189,7 +191,7 @@ def _model_from_markups(doc: Any, path: str) -> SplineSurface:
             raise InputError(f"{path}: control point {label!r} belongs to another snake "
                              f"({d.get('kind')} {d.get('m1')} x {d.get('m2')})")
         row = d.get("row")
-        if row not in rows or not np.isnan(params[row, 0]):
+        if not isinstance(row, int) or row not in rows or not np.isnan(params[row, 0]):
             raise InputError(f"{path}: control point {label!r}: row {row!r} is not a free point "
                              f"of this snake or is given twice")
         params[row] = p

@@ -291,7 +291,7 @@ def test_init_in_batch_and_config_files(tmp_path):
     (tmp_path / "c.yaml").write_text("init: seg/snake.json\nm1: 12\n")
     config = load_segment_config(tmp_path / "c.yaml")
     assert config.init == str(tmp_path / "seg" / "snake.json") and config.m1 == 12
-    with pytest.raises(ConfigError, match="radii describe a new initial shape"):
+    with pytest.raises(ConfigError, match="radii describes a new initial shape"):
         SegmentConfig.from_mapping({"init": "a.json", "radii": [1, 2, 3]})
     from segsnake.batch import load_batch
     from segsnake.batch_inputs import missing_inputs
