@@ -97,7 +97,14 @@ def test_markups_round_trip_and_rigid_move(system, tmp_path):
         assert markup["type"] == "Fiducial" and markup["coordinateSystem"] == system
         cps = markup["controlPoints"]
         assert len(cps) == int(np.sum(~model.is_vector))
-        assert all({"id", "label", "position", "description"} <= set(cp) for cp in cps)
+        # The types and enums of Slicer's markups-schema-v1.0.3 for what is written.
+        assert markup["coordinateUnits"] == "mm" and markup["fixedNumberOfControlPoints"] is True
+        for cp in cps:
+            assert all(isinstance(cp[k], str) for k in ("id", "label", "description"))
+            assert len(cp["position"]) == 3 and all(isinstance(x, float) for x in cp["position"])
+            assert len(cp["orientation"]) == 9 and cp["positionStatus"] == "defined"
+            assert all(isinstance(cp[k], bool) for k in ("selected", "locked", "visibility"))
+        assert len({cp["id"] for cp in cps}) == len({cp["label"] for cp in cps}) == len(cps)
         path = tmp_path / f"{model.kind}.mrk.json"
         path.write_text(json.dumps(doc))
         assert np.abs(load_snake(str(path)).params - model.params).max() < 1e-12
