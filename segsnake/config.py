@@ -357,12 +357,15 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "polarity": _choice(POLARITIES),
     "energy": _choice(ENERGIES),
     "mesh": _optional(_mesh_name),
+    "init": _optional(_path),
 }
 
 # Options that are positions: three numbers, or a 3D Slicer markups file (segsnake.markups).
 POSITION_KEYS = ("center", "seed_point", "axis_start", "axis_end")
 # Options whose value is (or may be) a file path: relative paths in a YAML file are relative to it.
-PATH_KEYS = ("prior",) + POSITION_KEYS
+PATH_KEYS = ("prior", "init") + POSITION_KEYS
+# The options that describe a new initial shape, which a start from a saved snake (init) replaces.
+SHAPE_KEYS = ("center", "radii", "axis_start", "axis_end", "radius")
 
 
 @dataclass
@@ -401,6 +404,9 @@ class SegmentConfig:
     polarity: str = "auto"
     energy: str = "auto"  # segsnake.pipeline.region_energy: region for a sphere, else edge
     mesh: str | None = None  # the surface also as NAME.stl/.obj/.ply in the output directory
+    # A saved snake to start from (snake.json, or a markups file of export-points): replaces the
+    # new sphere or cylinder and the stages that bring a rough start onto the boundary.
+    init: str | None = None
 
     # -- construction -------------------------------------------------------------------------
 
@@ -468,6 +474,12 @@ class SegmentConfig:
 
     def _consistency_problem(self) -> tuple[str, str] | None:
         """Checks that involve more than one option: ``(key, message)`` or ``None``."""
+        if self.init is not None:
+            given = [k for k in SHAPE_KEYS if getattr(self, k) is not None]
+            if given:
+                verb = "describes" if len(given) == 1 else "describe"
+                return "init", (f"init starts from a saved snake; {', '.join(given)} {verb} a "
+                                f"new initial shape: give one or the other")
         if isinstance(self.axis_start, list) and isinstance(self.axis_end, list):
             length = math.dist(self.axis_start, self.axis_end)
             if length == 0.0:

@@ -27,7 +27,7 @@ from segsnake.config import POSITION_KEYS
 from segsnake.errors import ConfigError, InputError
 from segsnake.io import _LPS_TO_RAS
 
-__all__ = ["read_markups", "resolve_markups", "is_markups_value"]
+__all__ = ["read_markups", "read_control_points", "read_json", "document_points", "resolve_markups", "is_markups_value"]
 
 # LPS <-> RAS: the first two world axes point the other way.
 
@@ -37,8 +37,8 @@ def is_markups_value(value: Any) -> bool:
     return isinstance(value, str)
 
 
-def _points_of(markup: Any, path: str, n: int) -> list[NDArray]:
-    """The defined control points of one markup, in RAS mm."""
+def _points_of(markup: Any, path: str, n: int) -> list[tuple[NDArray, dict]]:
+    """The defined control points of one markup: (position in RAS mm, the control point)."""
     if not isinstance(markup, dict):
         raise InputError(f"{path}: markup {n} is not a JSON object")
     system = markup.get("coordinateSystem", "LPS")  # the schema's default
@@ -64,12 +64,18 @@ def _points_of(markup: Any, path: str, n: int) -> list[NDArray]:
             raise InputError(f"{path}: markup {n}, control point {k}: position must be 3 finite "
                              f"numbers, got {pos!r}")
         p = np.asarray(pos, dtype=np.float64)
-        out.append(_LPS_TO_RAS @ p if system == "LPS" else p)
+        out.append((_LPS_TO_RAS @ p if system == "LPS" else p, cp))
     return out
 
 
 def read_markups(path: str) -> NDArray:
-    """The control points of a Slicer markups file as RAS world millimetres.
+    """The control points of a Slicer markups file as RAS world millimetres, shape (N, 3): the
+    positions of :func:`read_control_points` (same parameter, same errors)."""
+    return read_control_points(path)[0]
+
+
+def read_control_points(path: str) -> tuple[NDArray, list[dict]]:
+    """The control points of a Slicer markups file: RAS positions and the points' records.
 
     Parameters
     ----------
@@ -80,6 +86,8 @@ def read_markups(path: str) -> NDArray:
     -------
     ndarray, shape (N, 3)
         N >= 1 points, RAS world mm (LPS points converted).
+    list of dict
+        Each point's record as the file holds it (``label``, ``description``, ...).
 
     Raises
     ------
@@ -87,27 +95,44 @@ def read_markups(path: str) -> NDArray:
         The file is missing, unreadable, not JSON, not a markups document, or holds no point;
         the one-line message starts with the file.
     """
+    return document_points(read_json(path, "markups file"), path)
+
+
+def read_json(path: str, what: str) -> Any:
+    """A JSON file's content; every way reading it fails is one :class:`InputError` line.
+
+    Parameters
+    ----------
+    path : str
+        The file.
+    what : str
+        What the file should be, for the messages ("markups file", "snake file").
+    """
     try:
         with open(path, encoding="utf-8") as fh:
-            doc = json.load(fh)
+            return json.load(fh)
     except FileNotFoundError:
-        raise InputError(f"{path}: no such markups file") from None
+        raise InputError(f"{path}: no such {what}") from None
     except IsADirectoryError:
-        raise InputError(f"{path}: is a directory, not a markups file") from None
+        raise InputError(f"{path}: is a directory, not a {what}") from None
     except UnicodeDecodeError:
-        raise InputError(f"{path}: not a markups file (not UTF-8 text)") from None
+        raise InputError(f"{path}: not a {what} (not UTF-8 text)") from None
     except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not a markups file (JSON error at line {exc.lineno}: "
+        raise InputError(f"{path}: not a {what} (JSON error at line {exc.lineno}: "
                          f"{exc.msg})") from None
     except OSError as exc:
-        raise InputError(f"{path}: cannot read the markups file ({exc.strerror or exc})") from None
+        raise InputError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+
+
+def document_points(doc: Any, path: str) -> tuple[NDArray, list[dict]]:
+    """:func:`read_control_points` of a document already read from ``path``."""
     markups = doc.get("markups") if isinstance(doc, dict) else None
     if not isinstance(markups, list):
         raise InputError(f"{path}: not a 3D Slicer markups file (no \"markups\" list)")
     points = [p for n, m in enumerate(markups) for p in _points_of(m, path, n)]
     if not points:
         raise InputError(f"{path}: the markups file holds no control point")
-    return np.stack(points)
+    return np.stack([p for p, _ in points]), [cp for _, cp in points]
 
 
 def resolve_markups(config, index_from_world: Callable[[NDArray], NDArray]):

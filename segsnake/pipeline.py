@@ -285,7 +285,8 @@ def _polarity(model: SplineSurface, gradient: NDArray, spacing: Sequence[float])
 def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
                    index_from_world: Callable[[NDArray], NDArray] | None = None,
                    progress: Progress | None = None, extra_energy=None,
-                   region_params=None) -> SegmentResult:
+                   region_params=None,
+                   init_model: SplineSurface | None = None) -> SegmentResult:
     """Segment one structure in ``image`` with the options of ``config`` (a SegmentConfig).
 
     Parameters
@@ -304,10 +305,20 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         Added to every stage (the shape prior plugs in here).
     region_params : segsnake.region.RegionParams, optional
         The region energy's constants (default ``RegionParams()``).
+    init_model : SplineSurface, optional
+        Start from this snake (mm of scaled index space; a saved result, ``segment --init``)
+        instead of :func:`initial_model`. It is taken to lie on the boundary already: the
+        stages that only bring a rough start onto it are skipped (region energy: the first
+        region stage, which grows a click; edge stages: the discard of edges enclosed by the
+        initial surface, and the first capture), so that a saved result is refined where it
+        is rather than pulled elsewhere.
     """
     sp = tuple(float(s) for s in spacing)
     t0 = time.perf_counter()
-    model = initial_model(config, sp, image.shape, index_from_world, image)
+    # (issue 17, --init) A saved snake replaces the initial shape and skips the rough start.
+    on_boundary = init_model is not None
+    model = init_model if on_boundary else \
+        initial_model(config, sp, image.shape, index_from_world, image)
     init_s = time.perf_counter() - t0
     if config.seed_point is not None:
         # The seed point is a position like the others: world mm with --world. (It may lie
@@ -316,10 +327,11 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         config = config.replace(seed_point=[float(x) for x in seed])
     if region_energy(config):
         return _segment_region(image, sp, config, model, progress, extra_energy, init_s,
-                               region_params)
+                               region_params, on_boundary)
     frame = flux_frame(model, sp, image.shape)
     if frame is None:
-        return _segment(image, sp, config, model, progress, extra_energy, init_s)
+        return _segment(image, sp, config, model, progress, extra_energy, init_s,
+                        on_boundary=on_boundary)
     # Work in the frame whose first axis (the lookups' integration axis) runs across the
     # cylinder: there its open ends' missing caps carry no flux (segsnake.frames).
     t0 = time.perf_counter()
@@ -332,7 +344,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     scale = config.scale if config.scale is not None else _default_scale(sp)
     res = _segment(framed, frame.spacing, config.replace(seed_point=seed, scale=scale),
                    frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp),
-                   mask=False)
+                   mask=False, on_boundary=on_boundary)
     del framed
     res.model = frame.model_out(res.model)
     res.init_model = model
@@ -363,7 +375,7 @@ def region_energy(config) -> bool:
 
 
 def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
-                    params=None) -> SegmentResult:
+                    params=None, on_boundary: bool = False) -> SegmentResult:
     """The region energy from the click (:mod:`segsnake.region`, docs/design.md).
 
     1. *Intensity model*: the robust Gaussian of the smoothed image in the click's core.
@@ -374,6 +386,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
        the same minimization with the inside's Gaussian against that local outside one puts the
        surface at the midpoint intensity between the two, i.e. on the step (plus, with
        ``edge_length_mm``, the flux of ``grad I`` over the step's peak gradient).
+
+    ``on_boundary`` (a saved result): stage 2 is skipped, the snake is already on the step.
     """
     from segsnake import region as rg
     from segsnake.rasterize import rasterize
@@ -391,7 +405,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     w_click = rg.region_density(image_s, intensity)
     run.timings["edge_map_s"] = time.perf_counter() - t0
     report("region", 0.1)
-    model = run.region(model, w_click, "region")
+    if not on_boundary:
+        model = run.region(model, w_click, "region")
     report("two classes", 0.5)
 
     for k in range(p.two_class_rounds + 1):
@@ -472,10 +487,13 @@ def _final_mask(model: SplineSurface, shape, spacing) -> NDArray[np.bool_]:
 
 
 def _segment(image, sp, config, model, progress, extra_energy, init_s,
-             smooth_mm: float | None = None, mask: bool = True) -> SegmentResult:
+             smooth_mm: float | None = None, mask: bool = True,
+             on_boundary: bool = False) -> SegmentResult:
     """:func:`segment_volume` from the initial snake on, in the frame of ``image``
     (``smooth_mm``: the edge map's smoothing, default the largest voxel size; ``mask=False``:
-    the caller rasterizes the result on another grid, ``SegmentResult.mask`` is None)."""
+    the caller rasterizes the result on another grid, ``SegmentResult.mask`` is None;
+    ``on_boundary``: the snake is a saved result, no enclosed-edge discard and no first
+    capture)."""
     from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
@@ -495,8 +513,10 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
                   threshold=config.threshold, seed=seed, smooth_mm=smooth_mm)
     # The initial surface lies inside the object (that is the contract of an initialization):
     # edges it encloses are internal structures (ventricles, vessels), never the boundary.
-    inside_init = rasterize(model, shape, sp)
-    _discard(em, ~ndimage.binary_dilation(inside_init) if inside_init.any() else None)
+    # (A saved result encloses its own boundary's edges: nothing is discarded for it.)
+    if not on_boundary:
+        inside_init = rasterize(model, shape, sp)
+        _discard(em, ~ndimage.binary_dilation(inside_init) if inside_init.any() else None)
     if sheet:
         # A sheet around the object faces its centre (thesis sec. 7.2.2: keep the voxels whose
         # normal points to the centre); sheets that run radially (sulci, septa) are not it.
@@ -504,7 +524,8 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
     run.timings["edge_map_s"] = time.perf_counter() - t0
     report("edge map", 0.15)
 
-    model = run.capture(model, em.mask, em.smooth_mm)
+    if not on_boundary:
+        model = run.capture(model, em.mask, em.smooth_mm)
     report("snake", 0.5)
     if sheet:
         out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(model)))[..., None] \

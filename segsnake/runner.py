@@ -9,6 +9,11 @@ All the outputs are first written into a staging directory inside the output dir
 into place only when all of them are complete; if a move fails, the ones already moved are taken
 back and the earlier outputs restored. So a failed or interrupted run leaves no partial file, never
 a mix of old and new outputs, and (when it created the output directory) no empty directory.
+
+``render_file`` writes the same outputs for a saved snake (``snake.json`` or the markups file of
+``export-points``) placed on another image's grid, through the same checks and staging; and
+``segment_file`` with the ``init`` option starts from a saved snake instead of a new sphere or
+cylinder.
 """
 
 from __future__ import annotations
@@ -28,15 +33,31 @@ from segsnake.errors import ConfigError, InputError, OutputError, SegmentationEr
 from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
 from segsnake.qc import click_index, write_qc_picture
+from segsnake.saved_snake import image_from_world, load_snake
 
-__all__ = ["OUTPUT_NAMES", "output_names", "segment_file"]
+__all__ = ["OUTPUT_NAMES", "output_names", "segment_file", "render_file"]
 
 OUTPUT_NAMES = ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png")
+COORDINATES = ("model control points in mm of scaled index space (i*sx, j*sy, k*sz); surface.vtp "
+               "in world coordinates (the image affine)")
 
 
 def output_names(config) -> tuple[str, ...]:
     """The files a run writes: the four :data:`OUTPUT_NAMES` and the ``mesh`` option's file."""
-    return OUTPUT_NAMES + ((config.mesh,) if config.mesh is not None else ())
+    return _names(config.mesh)
+
+
+def _names(mesh: str | None) -> tuple[str, ...]:
+    return OUTPUT_NAMES + ((mesh,) if mesh is not None else ())
+
+
+def _outputs(out_dir: str, mesh: str | None) -> dict[str, str]:
+    """The summary's ``outputs``: absolute paths by kind (mask, surface, snake, qc, mesh)."""
+    out = {name.split(".")[0]: os.path.abspath(os.path.join(out_dir, name))
+           for name in OUTPUT_NAMES}
+    if mesh is not None:
+        out["mesh"] = os.path.abspath(os.path.join(out_dir, mesh))
+    return out
 
 
 def _existing_ancestor(path: str) -> str:
@@ -139,8 +160,10 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     out_dir = os.fspath(out_dir)
     truth_path = None if truth_path is None else os.fspath(truth_path)
     names = output_names(config)
-    _check_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior], names)
+    _check_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior, config.init], names)
     t0 = time.perf_counter()
+    # A bad --init file is refused before the image is read.
+    saved = load_snake(config.init) if config.init is not None else None
     volume = load_volume(image_path, volume_index=config.volume, nan=config.nan)
     truth = None
     truth_warnings: list[str] = []
@@ -149,6 +172,9 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     load_s = time.perf_counter() - t0
     # Markups files given as positions become numbers here: converting them needs the affine.
     config = resolve_markups(config, volume.world_to_index)
+    init_model = None
+    if saved is not None:
+        init_model, config = _start_from(saved, config, volume)
 
     extra = None
     if config.prior is not None and config.prior_weight > 0:
@@ -156,7 +182,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     try:
         result = segment_volume(volume.data, volume.spacing, config,
                                 index_from_world=volume.world_to_index, progress=progress,
-                                extra_energy=extra)
+                                extra_energy=extra, init_model=init_model)
     except (ConfigError, SegmentationError) as exc:
         _with_image_name(exc, image_path)
         raise
@@ -180,14 +206,117 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         metrics = evaluate_masks(result.mask, truth, volume.spacing)
         summary.update({k: (float(v) if np.isfinite(v) else None) for k, v in metrics.items()})
     t0 = time.perf_counter()
-    _write_outputs(out_dir, volume, result, config, summary, timings, overwrite, names, truth)
+    snake = {
+        "format": "segsnake-result",
+        "version": __version__,
+        "summary": summary,
+        "model": result.model.to_dict(),
+        "initial_model": result.init_model.to_dict(),
+        "coordinates": COORDINATES,
+        "affine": np.asarray(volume.affine).tolist(),
+        "settings": {**config.to_dict(), **result.settings},
+        "energy_history": result.history,
+        "timings": timings,
+    }
+    _write_outputs(out_dir, volume, result.mask, result.model, snake, overwrite, names,
+                   init_model=result.init_model, mesh=config.mesh, truth=truth,
+                   click=click_index(config, volume))
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["timings"] = timings
-    summary["outputs"] = {name.split(".")[0]: os.path.abspath(os.path.join(out_dir, name))
-                          for name in OUTPUT_NAMES}
-    if config.mesh is not None:
-        summary["outputs"]["mesh"] = os.path.abspath(os.path.join(out_dir, config.mesh))
+    summary["outputs"] = _outputs(out_dir, config.mesh)
+    return summary
+
+
+def _start_from(saved, config, volume):
+    """The ``init`` option's saved snake (world mm) on this image, at the requested size.
+
+    Returns the initial model (mm of this image's scaled index space; resampled by the exact L2
+    projection, :func:`segsnake.resample.resample`, when ``m1``/``m2`` ask for another size) and
+    the config with ``shape``, ``m1`` and ``m2`` those of the model, as ``snake.json`` records them.
+    """
+    from segsnake.resample import resample
+
+    model = image_from_world(saved, volume.affine, volume.spacing)
+    m1, m2 = config.m1 or model.m1, config.m2 or model.m2
+    if (m1, m2) != (model.m1, model.m2):
+        model = resample(model, m1, m2)
+    sp = np.asarray(volume.spacing)
+    centre = model.control_points().reshape(-1, 3).mean(axis=0) / sp
+    if np.any(centre < -0.5) or np.any(centre > np.asarray(volume.shape) - 0.5):
+        raise ConfigError(f"{config.init}: the saved snake lies outside {volume.path} (its centre "
+                          f"at voxel {[round(float(x), 1) for x in centre]}, shape "
+                          f"{tuple(volume.shape)}): a snake of another image?")
+    return model, config.replace(shape=model.kind, m1=m1, m2=m2)
+
+
+def render_file(snake_path: str, image_path: str, out_dir: str, *, mesh: str | None = None,
+                overwrite: bool = False) -> dict[str, Any]:
+    """Rebuild the outputs of a saved snake on an image's grid (``segsnake render``).
+
+    Parameters
+    ----------
+    snake_path : str
+        A ``snake.json`` (``segment`` or ``render`` output) or a markups file written by
+        ``export-points`` (perhaps with points moved in 3D Slicer).
+    image_path : str
+        The image whose grid the mask is written on (``--like``); its affine places the snake's
+        world coordinates. Its voxels are only drawn in ``qc.png``.
+    out_dir : str
+        Output directory: ``mask.nii.gz``, ``surface.vtp``, ``snake.json`` (the snake on this grid,
+        as ``segment`` writes it, without the run's history) and ``qc.png``, staged and committed
+        as ``segment`` does.
+    mesh : str, optional
+        Also the surface as this STL/OBJ/PLY file name.
+    overwrite : bool
+        Replace existing outputs.
+
+    Returns
+    -------
+    dict
+        JSON-able summary (also in ``snake.json``).
+
+    Raises
+    ------
+    InputError
+        An unreadable snake or image, or a snake that encloses no voxel centre of the image
+        (exit 3).
+    OutputError
+        As for :func:`segment_file` (exit 5).
+    """
+    from segsnake.io import load_volume
+    from segsnake.rasterize import rasterize
+
+    t_start = time.perf_counter()
+    snake_path, image_path, out_dir = (os.fspath(p) for p in (snake_path, image_path, out_dir))
+    names = _names(mesh)
+    _check_out_dir(out_dir, overwrite, [snake_path, image_path], names)
+    world = load_snake(snake_path)
+    # Only the grid is needed: NaN voxels do not stop a render (they are reported).
+    volume = load_volume(image_path, nan="fill")
+    model = image_from_world(world, volume.affine, volume.spacing)
+    mask = rasterize(model, volume.shape, volume.spacing)
+    if not mask.any():
+        raise InputError(f"{snake_path}: the snake encloses no voxel centre of {image_path} "
+                         f"(a snake of another image?)")
+    summary: dict[str, Any] = {
+        "image": os.path.abspath(image_path),
+        "snake": os.path.abspath(snake_path),
+        "shape": list(volume.shape),
+        "spacing_mm": list(volume.spacing),
+        "volume_mm3": float(model.volume()),
+        "mask_voxels": int(mask.sum()),
+        "warnings": list(volume.warnings),
+    }
+    timings = {"render_s": time.perf_counter() - t_start}
+    snake = {"format": "segsnake-result", "version": __version__, "summary": summary,
+             "model": model.to_dict(), "rendered_from": os.path.abspath(snake_path),
+             "coordinates": COORDINATES, "affine": np.asarray(volume.affine).tolist(),
+             "timings": timings}
+    _write_outputs(out_dir, volume, mask, model, snake, overwrite, names, mesh=mesh)
+    timings["total_s"] = time.perf_counter() - t_start
+    summary["timings"] = timings
+    summary["outputs"] = _outputs(out_dir, mesh)
     return summary
 
 
@@ -273,9 +402,14 @@ def _remove_empty_dirs(created: list[str]) -> None:
             os.rmdir(d)  # only succeeds when empty: never removes anything else
 
 
-def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite, names,
-                   truth=None) -> None:
+def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], overwrite: bool,
+                   names: tuple[str, ...], *, init_model=None, mesh: str | None = None,
+                   truth=None, click=None) -> None:
     """Write every output into a staging directory, then move them into place together.
+
+    ``mask`` and ``model`` (mm of the volume's scaled index space) give ``mask.nii.gz``,
+    ``surface.vtp`` and ``mesh``; ``snake`` is the content of ``snake.json``; ``qc.png`` draws
+    the model, ``init_model`` (dashed), ``truth`` and ``click``.
 
     Every failure (disk full, read-only directory, an output that appeared meanwhile, Ctrl-C)
     leaves the output directory as it was: the staging directory is removed, outputs already
@@ -296,37 +430,22 @@ def _write_outputs(out_dir, volume, result, config, summary, timings, overwrite,
         try:
             current = os.path.join(out_dir, "mask.nii.gz")
             try:
-                save_mask(result.mask, volume, os.path.join(stage, "mask.nii.gz"))
+                save_mask(mask, volume, os.path.join(stage, "mask.nii.gz"))
             except OutputError as exc:  # name the real output, not the staging file
                 reason = str(exc).split(": ", 1)[-1]
                 raise OutputError(f"{current}: {reason}") from None
             current = os.path.join(out_dir, "surface.vtp")
-            write_surface(os.path.join(stage, "surface.vtp"), result.model, volume)
-            if config.mesh is not None:
-                current = os.path.join(out_dir, config.mesh)
-                write_mesh(os.path.join(stage, config.mesh), result.model, volume)
+            write_surface(os.path.join(stage, "surface.vtp"), model, volume)
+            if mesh is not None:
+                current = os.path.join(out_dir, mesh)
+                write_mesh(os.path.join(stage, mesh), model, volume)
             current = os.path.join(out_dir, "snake.json")
-            snake = {
-                "format": "segsnake-result",
-                "version": __version__,
-                "summary": summary,
-                "model": result.model.to_dict(),
-                "initial_model": result.init_model.to_dict(),
-                "coordinates": "model control points in mm of scaled index space "
-                               "(i*sx, j*sy, k*sz); surface.vtp in world coordinates "
-                               "(the image affine)",
-                "affine": np.asarray(volume.affine).tolist(),
-                "settings": {**config.to_dict(), **result.settings},
-                "energy_history": result.history,
-                "timings": timings,
-            }
             text = json.dumps(snake, indent=1, default=_json_default)
             with open(os.path.join(stage, "snake.json"), "w", encoding="utf-8") as fh:
                 fh.write(text)
             current = os.path.join(out_dir, "qc.png")
-            write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing,
-                             result.mask, result.model, result.init_model, affine=volume.affine,
-                             truth=truth, click=click_index(config, volume))
+            write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing, mask,
+                             model, init_model, affine=volume.affine, truth=truth, click=click)
             current = out_dir
             _commit(stage, out_dir, overwrite, names)
         except OSError as exc:

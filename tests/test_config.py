@@ -42,7 +42,8 @@ def test_defaults_are_the_documented_ones():
     assert c.m1 is c.m2 is c.scale is c.center is c.volume is None
     assert c.mesh is None  # no extra surface file unless asked
     assert c.energy == "auto"  # pipeline.region_energy decides
-    assert len(SegmentConfig.keys()) == 24
+    assert c.init is None  # a new initial shape unless a saved snake is given
+    assert len(SegmentConfig.keys()) == 25
 
 
 def test_to_dict_round_trip_and_normalisation():

@@ -56,6 +56,11 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                    help="cylinder radius (voxels across the axis, or mm with --world)")
     g.add_argument("--world", action="store_true", default=None,
                    help="positions and radii are in the image's world millimetres")
+    g.add_argument("--init", default=None, metavar="SNAKE.json",
+                   help="start from a saved snake instead of a new sphere or cylinder: a "
+                        "snake.json, or a markups file written by export-points (perhaps edited "
+                        "in Slicer); placed by world coordinates, resampled to --m1/--m2 when "
+                        "given; the rough-start stages are skipped")
     m = parser.add_argument_group("model and features")
     m.add_argument("--m1", type=int, default=None, help="control points around (default 9 sphere, 8 cylinder)")
     m.add_argument("--m2", type=int, default=None, help="control points along (default 9 sphere, 4 cylinder)")
@@ -116,8 +121,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "world", "m1", "m2",
-               "scale", "feature", "polarity", "energy", "threshold", "seed_point", "max_iter", "volume", "nan",
-               "prior", "prior_weight", "prior_space", "mesh")
+               "scale", "feature", "polarity", "energy", "threshold", "seed_point", "max_iter",
+               "volume", "nan", "prior", "prior_weight", "prior_space", "mesh", "init")
 
 
 def config_from_args(args: argparse.Namespace):
@@ -167,6 +172,10 @@ def run(args: argparse.Namespace) -> int:
     threads()  # a bad SEGSNAKE_NUM_THREADS stops here, before any work
 
     config = config_from_args(args)
+    if config.init is not None and args.shape is not None:
+        # The saved snake is a sphere or a cylinder already: a --shape would be silently ignored.
+        raise ConfigError(f"--shape does not apply with --init (the snake in {config.init} "
+                          f"keeps its kind)")
     if args.truth_label is not None and args.truth is None:
         raise ConfigError("--truth-label needs --truth (the label map it selects from)")
     progress, bar = progress_reporter(progress_off(args))

@@ -1,0 +1,68 @@
+"""A snake with other numbers of control points: the exact L2 projection onto the new spline space.
+
+``segment --init SNAKE.json --m1 N --m2 N`` starts from a saved snake of another size. The new
+model is the one closest to the old surface in ``L2([0, 1]^2)`` over the parameter domain (the
+inner product of :mod:`segsnake.priors`):
+
+    p_new = B_new^-1 A_new^T integral b_new(u, v) sigma_old(u, v) du dv,
+
+with ``B_new`` the exact Gram matrix of the new free parameters (:func:`segsnake.priors.param_gram`)
+and ``A_new`` its constraint map. Both bases are smooth inside their own knot intervals, so the
+right-hand side is integrated exactly (to rounding) by Gauss-Legendre on the union of the two
+knot sets, :data:`segsnake.priors.GRAM_ORDER` nodes per piece. Every shape the new space holds is
+reproduced exactly: an ellipsoid (sphere snakes) or a straight elliptic cylinder (cylinder snakes)
+at any size, and any snake resampled to its own size.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from segsnake.priors import GRAM_ORDER, param_gram
+from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
+
+__all__ = ["resample"]
+
+_KINDS = {"sphere": SphereModel, "cylinder": CylinderModel}
+
+
+def _union_rule(n_a: int, n_b: int, order: int) -> tuple[NDArray, NDArray]:
+    """Gauss-Legendre nodes and weights on [0, 1] split at the knots ``k / n_a`` and ``k / n_b``."""
+    breaks = np.union1d(np.arange(n_a + 1) / n_a, np.arange(n_b + 1) / n_b)
+    # Knots that coincide up to rounding (k/6 and 2k/12) would make empty pieces.
+    breaks = breaks[np.concatenate([[True], np.diff(breaks) > 1e-14])]
+    breaks[-1] = 1.0
+    x, w = np.polynomial.legendre.leggauss(order)
+    h = np.diff(breaks)
+    nodes = (breaks[:-1, None] + (x[None, :] + 1) * h[:, None] / 2).ravel()
+    weights = (w[None, :] * h[:, None] / 2).ravel()
+    return nodes, weights
+
+
+def resample(model: SplineSurface, m1: int, m2: int) -> SplineSurface:
+    """The model of the same kind with ``m1 x m2`` control points closest to ``model`` in L2.
+
+    Parameters
+    ----------
+    model : SplineSurface
+        A sphere or cylinder snake (any coordinates: the projection commutes with affine maps).
+    m1, m2 : int
+        The new numbers of control points around and along.
+
+    Returns
+    -------
+    SplineSurface
+        The L2-orthogonal projection of ``model``'s surface onto the new spline space (at the
+        model's own size: the model again, to rounding).
+    """
+    new = _KINDS[model.kind].unit(m1, m2)
+    u, wu = _union_rule(model.m1, m1, GRAM_ORDER)
+    v, wv = _union_rule(model.m2, m2, GRAM_ORDER)
+    sigma = model.evaluate(u, v)[0]  # (nu, nv, 3)
+    bu = new._basis_u(u, 0)  # (nu, M1)
+    bv = new._basis_v(v, 0)  # (nv, L)
+    # integral b_k(u) b_l(v) sigma(u, v): (M1, L, 3)
+    rhs_grid = np.einsum("uk,u,uvd,v,vl->kld", bu, wu, sigma, wv, bv, optimize=True)
+    rhs = new.constraint.T @ rhs_grid.reshape(-1, 3)
+    return new.with_params(np.linalg.solve(param_gram(new), rhs))
