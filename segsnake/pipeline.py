@@ -447,6 +447,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         run.timings["edge_map_s"] += time.perf_counter() - t0
         model = run.region(model, w, f"two classes, round {k + 1}")
         del w
+        if k == p.two_class_rounds - 1 and config.m1 is None and config.m2 is None:
+            model = _finer_grids(run, model, p)
     t0 = time.perf_counter()
     mask = _final_mask(model, image.shape, sp)
     run.timings["mask_s"] = time.perf_counter() - t0
@@ -456,6 +458,34 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
+
+
+def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
+    """Coarse to fine: the last stage again on finer control grids (``p.finer_m``), each started
+    from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
+    it lowers the image energy by more than ``p.finer_gain`` of it (a finer grid always fits a
+    little better; what it must buy is detail the coarser one smoothed away)."""
+    from segsnake.resample import resample
+
+    lookup = run.lookup
+
+    def image_energy(m: SplineSurface, order: int) -> float:
+        return FluxTerm(m, lookup, weight=1.0, order=order).value_and_grad(m.params)[0]
+
+    for m in p.finer_m:
+        if m <= min(model.m1, model.m2):
+            continue
+        finer = run.region(resample(model, m, m), lookup, f"grid {m}x{m}")
+        # both on the finer grid's nodes: intervals of the coarser one's size or less
+        order = min(2 * quadrature_order(float(longest_intervals(finer).max()),
+                                         p.edge_smooth_mm), MAX_ORDER)
+        e, e_fine = image_energy(model, order), image_energy(finer, order)
+        gain = (e - e_fine) / max(abs(e), 1e-300)
+        run.history[-1].update(image_energy_gain=gain, kept=bool(gain > p.finer_gain))
+        if gain <= p.finer_gain:
+            break
+        model = finer
+    return model
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:
@@ -623,13 +653,16 @@ class _Run:
         self.history.append({"stage": name, **res})
         return model
 
-    def region(self, model, density: NDArray, name: str):
-        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`)."""
+    def region(self, model, density, name: str):
+        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`; an array, or
+        its lookup); ``self.lookup`` keeps the lookup."""
         from segsnake.lookup import Lookup
 
-        t0 = time.perf_counter()
-        lookup = Lookup.from_field(density, self.sp, divergence_of_gradient=False)
-        self.timings["lookup_s"] += time.perf_counter() - t0
+        if isinstance(density, np.ndarray):
+            t0 = time.perf_counter()
+            density = Lookup.from_field(density, self.sp, divergence_of_gradient=False)
+            self.timings["lookup_s"] += time.perf_counter() - t0
+        self.lookup = lookup = density
         p = self.region_params
         model, res = _run_stage(model, lookup, 1.0, self.config, self.bounds, self.extra,
                                 p.step_mm, p.edge_smooth_mm, region=True)

@@ -65,6 +65,11 @@ class RegionParams:
     #: surface inside the step reads part of the object as outside, which pulls it inwards).
     two_class_rounds: int = 3
     combine: str = "blend"
+    #: Coarse to fine: after the two-class rounds on the initial grid (9 x 9 unless given), the
+    #: last round again on these finer grids (M1 = M2) in turn ...
+    finer_m: tuple[int, ...] = (13, 17)
+    #: ... each kept while it lowers the image energy by more than this fraction of it.
+    finer_gain: float = 0.01
     #: Longest move of the surface per optimizer step (mm): about the smoothing widths, so that a
     #: step cannot jump across a boundary it has not seen.
     step_mm: float = 2.0
