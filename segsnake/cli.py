@@ -25,7 +25,8 @@ DESCRIPTION = ("Segment 3D structures in medical volumes with smooth spline snak
                "(deformable spheres and cylinders).")
 
 # Order is the order shown in ``segsnake --help``.
-COMMANDS = ("segment", "demo", "phantom", "evaluate", "batch", "shape", "shape-model")
+COMMANDS = ("segment", "demo", "phantom", "evaluate", "batch", "shape", "shape-model", "fit",
+            "morph", "measure")
 
 # Exit codes decided here rather than by an error class (the README's table lists every code).
 EXIT_UNEXPECTED = 1

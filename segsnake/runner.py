@@ -131,6 +131,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         directory or a failed write (exit 5); earlier outputs are left as they were.
     """
     from segsnake.io import load_volume
+    from segsnake.measure import closed_area
     from segsnake.metrics import evaluate_masks
     from segsnake.pipeline import segment_volume
 
@@ -166,6 +167,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         "shape": list(volume.shape),
         "spacing_mm": list(volume.spacing),
         "volume_mm3": float(result.model.volume()),
+        "area_mm2": closed_area(result.model),
         "mask_voxels": int(result.mask.sum()),
         "energy": result.energy,
         "iterations": result.iterations,

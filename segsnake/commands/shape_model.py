@@ -32,7 +32,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return parser
 
 
-def _load(path: str):
+def load_snake(path: str):
+    """A saved model (``snake.json``, a reference, a shape model) or InputError naming the file."""
     from segsnake.surfaces import load_model
 
     try:
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     if len(args.snakes) < 2:
         raise ConfigError(f"shape-model needs at least two snakes, got {len(args.snakes)}")
     check_not_input(args.out, *args.snakes)
-    models = [_load(p) for p in args.snakes]
+    models = [load_snake(p) for p in args.snakes]
     first = models[0]
     for path, m in zip(args.snakes, models):
         if (m.kind, m.m1, m.m2) != (first.kind, first.m1, first.m2):
