@@ -79,9 +79,9 @@ def test_bumpy_shape_volume_and_area_match_dense_mesh():
     base = SphereModel.ellipsoid((0, 0, 0), (6, 5, 4), m1=10, m2=8)
     model = base.with_params(base.params + 0.6 * rng.normal(size=base.params.shape))
     m = measure(model)
-    mesh = model.to_mesh(samples_u=40 * model.m1, samples_v=40 * model.m2)
-    assert m.volume == pytest.approx(mesh.volume, rel=2e-4)
-    assert m.area == pytest.approx(mesh.area, rel=2e-4)
+    mesh = model.to_mesh(samples_u=24 * model.m1, samples_v=24 * model.m2)
+    assert m.volume == pytest.approx(mesh.volume, rel=5e-4)
+    assert m.area == pytest.approx(mesh.area, rel=5e-4)
     assert m.max_diameter >= np.max(np.linalg.norm(mesh.points[:, None] - mesh.points[None, ::997], axis=-1))
     assert closed_area(model) == pytest.approx(m.area, rel=1e-12)
 

@@ -238,7 +238,7 @@ def test_shape_model_command_and_its_use_as_a_prior(tmp_path, capsys):
     # segment --prior MODEL.json: the reference's affine images cost nothing, others do.
     from segsnake.runner import _prior_energy
 
-    config = SimpleNamespace(prior=str(out), prior_weight=1.0, prior_space="affine",
+    config = SimpleNamespace(prior=str(out), prior_weight=1.0, prior_space="affine", prior_modes=0,
                              shape="sphere", m1=8, m2=7)
     make = _prior_energy(config)
     energy = make(sm.reference)
