@@ -24,6 +24,13 @@ Minimizing over ``theta`` and ``c`` in closed form (Cholesky-whitened coordinate
     E = gamma * y'^T (I - X (X^T X + W)^-1 X^T) y',      grad = 2 gamma L (I - Q Q^T) H y',
 
 ``H`` the bracket. With ``K = 0`` it is :class:`AffinePrior`'s energy for the mean as reference.
+
+With the ``rigid`` and ``similarity`` spaces the transformed shape is ``s R (mean + sum c_k xi_k)
++ b`` (:class:`RotationModePrior`): the minimum is no longer a quadratic form, and it is found by
+alternating the exact Procrustes fit of ``(s, R, b)`` (:mod:`segsnake.procrustes`) with the exact
+ridge solve for ``c`` in the pulled-back frame ``R^T (sigma - b) / s``, until the energy stops
+decreasing (each step cannot increase it). At the minimizer the gradient is
+``2 gamma B (p - P p)`` with ``P p`` the fitted shape (Danskin), as for the rotation priors.
 """
 
 from __future__ import annotations
@@ -39,7 +46,11 @@ from segsnake.priors import SPACES, check_same_size, shape_space_columns, stack,
 from segsnake.shapes import ShapeModel
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["ModePrior", "residual_variance", "build_prior"]
+__all__ = ["ModePrior", "RotationModePrior", "residual_variance", "build_prior"]
+
+#: Alternations of :class:`RotationModePrior` at most, and the relative energy change that stops them.
+ALTERNATIONS = 200
+ALTERNATION_TOL = 1e-13
 
 
 def residual_variance(variances: NDArray, n_modes: int) -> float:
@@ -128,18 +139,92 @@ class ModePrior:
         return self.weight * value, self.weight * unstack(grad)
 
 
+@dataclass
+class RotationModePrior:
+    """Distance to ``{s R (mean + sum_k c_k xi_k) + b}`` with a PPCA penalty on ``c`` (module doc).
+
+    Parameters are those of :class:`ModePrior`, with ``space`` ``rigid`` or ``similarity``.
+    """
+
+    model: SplineSurface
+    shape_model: ShapeModel
+    weight: float = 1.0
+    space: str = "similarity"
+    n_modes: int = 1
+
+    def __post_init__(self) -> None:
+        from segsnake.priors import param_gram
+        from segsnake.procrustes import ROTATION_SPACES
+
+        mean = self.shape_model.mean
+        check_same_size(self.model, mean, "the shape model")
+        if self.space not in ROTATION_SPACES:
+            raise ValueError(f"unknown rotation space {self.space!r}")
+        n_avail = len(self.shape_model.variances)
+        if not 1 <= self.n_modes <= n_avail:
+            raise ValueError(f"--prior-modes {self.n_modes}: the shape model has {n_avail} modes")
+        K = self.n_modes
+        self._B = param_gram(mean)
+        self._modes = np.asarray(self.shape_model.modes[:K])  # (K, P, 3)
+        # Gram of the modes in the L2 metric and the ridge: rho^2 / lambda_k.
+        self._XtX = np.einsum("kpd,pq,lqd->kl", self._modes, self._B, self._modes)
+        rho2 = residual_variance(self.shape_model.variances, K)
+        self._ridge = np.diag(rho2 / np.maximum(self.shape_model.variances[:K], 1e-300))
+        self._t = (~mean.is_vector).astype(np.float64)
+
+    def fit(self, params: NDArray) -> tuple[NDArray, NDArray, float]:
+        """``(P p, c, energy bracket)`` at the alternating minimum."""
+        from segsnake.procrustes import procrustes_fit
+
+        p = np.asarray(params, dtype=np.float64)
+        mean = self.shape_model.mean.params
+        c = np.zeros(self.n_modes)
+        last = np.inf
+        for _ in range(ALTERNATIONS):
+            shape = mean + np.einsum("k,kpd->pd", c, self._modes)
+            s, R, b = procrustes_fit(self.model, p, shape, self.space)
+            fitted = s * shape @ R.T + self._t[:, None] * b[None, :]
+            d = p - fitted
+            value = float(np.sum(d * (self._B @ d))) + float(c @ self._ridge @ c)
+            if last - value <= ALTERNATION_TOL * max(value, 1e-300):
+                break
+            last = value
+            if s <= 0:
+                break
+            # pulled back: y = R^T (p - b) / s; minimize s^2 ||y - mean - Xi c||^2 + c W c
+            y = ((p - self._t[:, None] * b[None, :]) @ R) / s
+            rhs = s * s * np.einsum("kpd,pq,qd->k", self._modes, self._B, y - mean)
+            c = np.linalg.solve(s * s * self._XtX + self._ridge, rhs)
+        shape = mean + np.einsum("k,kpd->pd", c, self._modes)
+        s, R, b = procrustes_fit(self.model, p, shape, self.space)
+        fitted = s * shape @ R.T + self._t[:, None] * b[None, :]
+        d = p - fitted
+        return fitted, c, float(np.sum(d * (self._B @ d))) + float(c @ self._ridge @ c)
+
+    def distance2(self, params: NDArray) -> float:
+        """The bracket of the energy (mm^2), without the weight."""
+        return self.fit(params)[2]
+
+    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+        """Energy and gradient ``2 gamma B (p - P p)`` at the alternating minimum (Danskin)."""
+        fitted, _, value = self.fit(params)
+        grad = 2.0 * (self._B @ (np.asarray(params, dtype=np.float64) - fitted))
+        return self.weight * value, self.weight * grad
+
+
 def build_prior(model: SplineSurface, reference: SplineSurface, weight: float, space: str,
                 shape_model: ShapeModel | None = None, n_modes: int = 0):
     """The prior energy ``segment --prior`` adds, for one snake.
 
     ``rigid`` and ``similarity``: :class:`segsnake.procrustes.ProcrustesPrior` of the reference;
     with ``n_modes > 0`` (a shape model): :class:`ModePrior` of its mean and first modes; else
-    :class:`segsnake.priors.AffinePrior` of the reference.
+    :class:`segsnake.priors.AffinePrior` of the reference; both (a rotation space with modes):
+    :class:`RotationModePrior`.
 
     Raises
     ------
     ValueError
-        Modes without a shape model, modes with a rotation space, a size mismatch.
+        Modes without a shape model, more modes than the model has, a size mismatch.
     """
     from segsnake.priors import AffinePrior
     from segsnake.procrustes import ROTATION_SPACES, ProcrustesPrior
@@ -149,8 +234,8 @@ def build_prior(model: SplineSurface, reference: SplineSurface, weight: float, s
                          "as --prior")
     if space in ROTATION_SPACES:
         if n_modes:
-            raise ValueError(f"--prior-modes works with the linear spaces ({', '.join(SPACES)}), "
-                             f"not with {space}")
+            return RotationModePrior(model, shape_model, weight=weight, space=space,
+                                     n_modes=n_modes)
         return ProcrustesPrior(model, reference, weight=weight, space=space)
     if n_modes:
         return ModePrior(model, shape_model, weight=weight, space=space, n_modes=n_modes)

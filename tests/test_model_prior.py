@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.optimize as opt
 
-from segsnake.model_prior import ModePrior, build_prior, residual_variance
+from segsnake.model_prior import ModePrior, RotationModePrior, build_prior, residual_variance
 from segsnake.priors import AffinePrior, shape_space_columns, stack, unstack
 from segsnake.procrustes import ProcrustesPrior
 from segsnake.shapes import build_shape_model
@@ -88,14 +88,40 @@ def test_gradient_matches_central_differences(space):
     assert value > 0 and fd == pytest.approx(np.sum(grad * direction), rel=1e-7)
 
 
+@pytest.mark.parametrize("space", ["rigid", "similarity"])
+def test_rotation_with_modes(space):
+    from scipy.spatial.transform import Rotation
+
+    prior = RotationModePrior(SM.mean, SM, weight=0.7, space=space, n_modes=2)
+    R = Rotation.from_rotvec([0.4, -1.0, 2.0]).as_matrix()
+    s = 1.0 if space == "rigid" else 1.3
+    c = np.array([1.5, -0.4])
+    shape = SM.mean.params + np.einsum("k,kpd->pd", c, SM.modes[:2])
+    moved = s * shape @ R.T + (~SM.mean.is_vector)[:, None] * np.array([5.0, -2, 9])
+    fitted, c_fit, value = prior.fit(moved)
+    # the mode coefficients are found back (up to the small PPCA shrinkage), the residual is ~0
+    assert np.allclose(c_fit, c, rtol=0.05, atol=0.05)
+    assert value < 0.05 * ProcrustesPrior(SM.mean, SM.mean, space=space).distance2(moved)
+    # never above the rotation prior without modes (c = 0 is one of the candidates)
+    snake = SM.mean.with_params(SM.mean.params + 0.5 * _deformation(8)).transformed(R, (1, 2, 3))
+    assert prior.distance2(snake.params) <= ProcrustesPrior(SM.mean, SM.mean, space=space
+                                                            ).distance2(snake.params) + 1e-12
+    # gradient at the alternating minimum against central differences
+    value, grad = prior.value_and_grad(snake.params)
+    direction = np.random.default_rng(12).normal(size=grad.shape)
+    h = 1e-5
+    fd = (prior.value_and_grad(snake.params + h * direction)[0]
+          - prior.value_and_grad(snake.params - h * direction)[0]) / (2 * h)
+    assert fd == pytest.approx(np.sum(grad * direction), rel=1e-5)
+
+
 def test_build_prior_picks_and_refuses():
     assert isinstance(build_prior(SM.mean, SM.reference, 1.0, "rigid"), ProcrustesPrior)
     assert isinstance(build_prior(SM.mean, SM.reference, 1.0, "affine", SM, 2), ModePrior)
     assert isinstance(build_prior(SM.mean, SM.reference, 1.0, "affine", SM, 0), AffinePrior)
     with pytest.raises(ValueError, match="needs a shape model"):
         build_prior(SM.mean, SM.reference, 1.0, "affine", None, 2)
-    with pytest.raises(ValueError, match="linear spaces"):
-        build_prior(SM.mean, SM.reference, 1.0, "similarity", SM, 2)
+    assert isinstance(build_prior(SM.mean, SM.reference, 1.0, "similarity", SM, 2), RotationModePrior)
     with pytest.raises(ValueError, match="has 9 modes"):
         build_prior(SM.mean, SM.reference, 1.0, "affine", SM, 12)
 
@@ -125,8 +151,8 @@ def test_segment_prior_options_pick_the_prior_and_refuse_contradictions(tmp_path
         _prior_energy(config(prior=str(plain), prior_modes=2))
     with pytest.raises(InputError, match="model.json: .*has 9 modes"):
         _prior_energy(config(prior_modes=10))
-    with pytest.raises(InputError, match="not with similarity"):
-        _prior_energy(config(prior_modes=1, prior_space="similarity"))
+    assert isinstance(_prior_energy(config(prior_modes=1, prior_space="rigid"))(snake),
+                      RotationModePrior)
 
 
 @pytest.mark.slow

@@ -126,6 +126,21 @@ def test_morph_cli(tmp_path, capsys):
 
     assert np.allclose(load_model(out / "step_001.json").params, 0.5 * (E1.params + E2.params))
     assert main(["morph", str(pa), str(pb), "--steps", "3", "--out", str(out)]) == 5
+    # masks on an image's grid: their voxel counts follow the volumes
+    import nibabel as nib
+
+    nib.save(nib.Nifti1Image(np.zeros((24, 24, 24), np.float32), np.eye(4)), str(tmp_path / "g.nii.gz"))
+    a2 = SphereModel.ellipsoid((12, 12, 12), (4, 5, 6), m1=6, m2=5)
+    b2 = SphereModel.ellipsoid((12, 12, 12), (8, 7, 6), m1=6, m2=5)
+    a2.save(tmp_path / "a2.json")
+    b2.save(tmp_path / "b2.json")
+    assert main(["morph", str(tmp_path / "a2.json"), str(tmp_path / "b2.json"), "--steps", "3",
+                 "--out", str(tmp_path / "mm"), "--like", str(tmp_path / "g.nii.gz"), "-q"]) == 0
+    counts = [int(np.asarray(nib.load(str(tmp_path / "mm" / f"step_00{i}.nii.gz")).dataobj).sum())
+              for i in range(3)]
+    vols = [4 / 3 * np.pi * 120, None, 4 / 3 * np.pi * 336]
+    assert counts[0] == pytest.approx(vols[0], rel=0.05) and counts[2] == pytest.approx(vols[2], rel=0.05)
+    assert counts[0] < counts[1] < counts[2]
     SphereModel.unit(8, 5).save(tmp_path / "c.json")
     assert main(["morph", str(pa), str(tmp_path / "c.json"), "--out", str(tmp_path / "n")]) == 3
     assert not (tmp_path / "n").exists()

@@ -5,7 +5,9 @@ The path of seed 000 (sec. 6.3) on the control points (:mod:`segsnake.morph`): `
 shapes), optionally after the unbiased affine alignment of the pair (``--align``). DIR receives,
 for every step ``i``, ``step_i.json`` (the snake, a ``segsnake-model``) and ``step_i.vtp`` (its
 mesh, in the snakes' coordinates: mm of scaled index space), and ``morph.csv`` with ``tau``, the
-enclosed volume and the area of every step. All files are staged and moved in together.
+enclosed volume and the area of every step; with ``--like IMAGE`` also ``step_i.nii.gz``, the
+step's mask on that image's grid (the snakes must be in its scaled index space, as ``segment``'s
+and ``fit``'s of a mask on that grid are). All files are staged and moved in together.
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="Hilbert plane (eq. 17) or Hilbert sphere (eq. 19); default plane")
     parser.add_argument("--align", action="store_true",
                         help="align both snakes to their unbiased affine reference first")
+    parser.add_argument("--like", default=None, metavar="IMAGE",
+                        help="also write each step's mask on this image's grid (step_i.nii.gz)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_output_options(parser)
     parser.set_defaults(func=run)
@@ -57,8 +61,14 @@ def run(args: argparse.Namespace) -> int:
                          f"with M1={a.m1}, M2={a.m2} (the control points must correspond)")
     width = max(3, len(str(args.steps - 1)))
     stems = [f"step_{i:0{width}d}" for i in range(args.steps)]
-    names = tuple(n for s in stems for n in (s + ".json", s + ".vtp")) + ("morph.csv",)
-    _check_out_dir(args.out, args.overwrite, [args.a, args.b], names)
+    kinds = (".json", ".vtp") + ((".nii.gz",) if args.like else ())
+    names = tuple(s + k for s in stems for k in kinds) + ("morph.csv",)
+    _check_out_dir(args.out, args.overwrite, [args.a, args.b, args.like], names)
+    like = None
+    if args.like:
+        from segsnake.io import load_volume
+
+        like = load_volume(args.like, bytes_per_voxel=None)
     try:
         taus, shapes = morph(a, b, args.steps, args.path, args.align)
     except ValueError as exc:
@@ -76,6 +86,12 @@ def run(args: argparse.Namespace) -> int:
                 with open(os.path.join(stage, stem + ".json"), "w", encoding="utf-8") as fh:
                     json.dump(m.to_dict(), fh)
                 m.to_mesh().save(os.path.join(stage, stem + ".vtp"))
+                if like is not None:
+                    from segsnake.io import save_mask
+                    from segsnake.rasterize import rasterize
+
+                    save_mask(rasterize(m, like.shape, like.spacing), like,
+                              os.path.join(stage, stem + ".nii.gz"))
             with open(os.path.join(stage, "morph.csv"), "w", newline="", encoding="utf-8") as fh:
                 writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
                 writer.writeheader()
