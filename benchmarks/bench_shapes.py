@@ -237,6 +237,8 @@ def prior_gap(workdir: str, weights=(1.0, 0.3)) -> dict:
         settings += [("affine", w, []), ("similarity", w, ["--prior-space", "similarity"]),
                      ("rigid", w, ["--prior-space", "rigid"])]
         settings += [(f"affine + {k} modes", w, ["--prior-modes", str(k)]) for k in (1, 2, 3, 5)]
+        settings += [(f"{sp} + 3 modes", w, ["--prior-space", sp, "--prior-modes", "3"])
+                     for sp in ("similarity", "rigid")]
     for name, w, extra in settings:
         args = [] if w is None else ["--prior", model, "--prior-weight", str(w), *extra]
         rec, mask = segment("test", img, truth, *args)

@@ -53,6 +53,18 @@ ALTERNATIONS = 200
 ALTERNATION_TOL = 1e-13
 
 
+def _check(model: SplineSurface, shape_model: ShapeModel, space: str, spaces, n_modes: int,
+           least: int) -> None:
+    """ValueError for a shape model of another size, a space not in ``spaces``, or K out of range."""
+    check_same_size(model, shape_model.mean, "the shape model")
+    if space not in spaces:
+        raise ValueError(f"unknown shape space {space!r} for this prior; expected one of "
+                         f"{', '.join(spaces)}")
+    n_avail = len(shape_model.variances)
+    if not least <= n_modes <= n_avail:
+        raise ValueError(f"--prior-modes {n_modes}: the shape model has {n_avail} modes")
+
+
 def residual_variance(variances: NDArray, n_modes: int) -> float:
     """``rho^2``: mean variance of the modes beyond ``n_modes`` (the smallest if none is left)."""
     variances = np.asarray(variances, dtype=np.float64)
@@ -85,14 +97,8 @@ class ModePrior:
     n_modes: int = 0
 
     def __post_init__(self) -> None:
+        _check(self.model, self.shape_model, self.space, SPACES, self.n_modes, 0)
         mean = self.shape_model.mean
-        check_same_size(self.model, mean, "the shape model")
-        if self.space not in SPACES:
-            raise ValueError(f"unknown shape space {self.space!r} for a mode prior; expected one "
-                             f"of {', '.join(SPACES)}")
-        n_avail = len(self.shape_model.variances)
-        if not 0 <= self.n_modes <= n_avail:
-            raise ValueError(f"--prior-modes {self.n_modes}: the shape model has {n_avail} modes")
         L = _param_cholesky(mean)
         self._Lf = la.block_diag(L, L, L)
         self._offset = stack(mean.params) if self.space == "translation" else 0.0
@@ -156,13 +162,8 @@ class RotationModePrior:
         from segsnake.priors import param_gram
         from segsnake.procrustes import ROTATION_SPACES
 
+        _check(self.model, self.shape_model, self.space, ROTATION_SPACES, self.n_modes, 1)
         mean = self.shape_model.mean
-        check_same_size(self.model, mean, "the shape model")
-        if self.space not in ROTATION_SPACES:
-            raise ValueError(f"unknown rotation space {self.space!r}")
-        n_avail = len(self.shape_model.variances)
-        if not 1 <= self.n_modes <= n_avail:
-            raise ValueError(f"--prior-modes {self.n_modes}: the shape model has {n_avail} modes")
         K = self.n_modes
         self._B = param_gram(mean)
         self._modes = np.asarray(self.shape_model.modes[:K])  # (K, P, 3)
