@@ -87,13 +87,24 @@ def _vertex_areas(points: NDArray, faces: NDArray) -> tuple[NDArray, NDArray]:
     return va, tri
 
 
-def _poles(points: NDArray, areas: NDArray) -> tuple[int, int]:
+def _poles(points: NDArray, faces: NDArray, areas: NDArray) -> tuple[int, int]:
+    """North and south: the extreme vertices along the first principal axis.
+
+    The south pole must not be a neighbour of the north pole (it goes to the disk's centre while
+    the north pole's neighbours are pinned to its rim): the farthest vertex off that ring is used.
+    """
     centre = areas @ points / areas.sum()
     x = points - centre
     cov = (areas[:, None] * x).T @ x
     axis = np.linalg.eigh(cov)[1][:, -1]
     proj = x @ axis
-    return int(np.argmax(proj)), int(np.argmin(proj))
+    north = int(np.argmax(proj))
+    blocked = np.zeros(len(points), dtype=bool)
+    blocked[np.unique(faces[np.any(faces == north, axis=1)])] = True
+    if blocked.all():
+        raise TopologyError(f"the mesh has too few vertices ({len(points)}) to parameterize: "
+                            f"every vertex touches the north pole")
+    return north, int(np.argmin(np.where(blocked, np.inf, proj)))
 
 
 def _ring(faces: NDArray, apex: int) -> NDArray:
@@ -297,7 +308,7 @@ def spherical_parameterization(points: NDArray, faces: NDArray) -> SphericalMap:
     faces = np.asarray(faces, dtype=np.int64)
     _check_closed_manifold(faces, len(points))
     areas, _ = _vertex_areas(points, faces)
-    north, south = _poles(points, areas)
+    north, south = _poles(points, faces, areas)
     z = _disk_map(points, faces, north)
     a = z[south]
     inside = np.isfinite(z)

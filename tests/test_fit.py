@@ -181,3 +181,16 @@ def test_real_structures_fit_within_half_a_percent(name):
     vol = measure(res.model).volume
     assert vol == pytest.approx(abs(pv.PolyData(surf.points, cells).volume), rel=0.015)
     assert vol == pytest.approx(mask.sum() * np.prod(spacing), rel=0.03)
+
+
+def test_tiny_meshes():
+    """An octahedron is parameterized (south opposite north); a tetrahedron is refused."""
+    import pyvista as pv
+
+    octa = pv.Octahedron()
+    pts, faces = np.asarray(octa.points), np.asarray(octa.faces).reshape(-1, 4)[:, 1:]
+    smap = spherical_parameterization(pts, faces)
+    assert smap.flipped_fraction() == 0.0 and smap.south not in faces[np.any(faces == smap.north, 1)]
+    tet = pv.Tetrahedron()
+    with pytest.raises(TopologyError, match="too few vertices"):
+        spherical_parameterization(np.asarray(tet.points), np.asarray(tet.faces).reshape(-1, 4)[:, 1:])
