@@ -220,29 +220,34 @@ def prior_gap(workdir: str, weights=(1.0, 0.3)) -> dict:
         rec, _ = segment(f"train{i}", img, truth)
         train.append({"dice": rec["dice"], "snake": os.path.join(workdir, f"seg_train{i}",
                                                                  "snake.json")})
-    model = os.path.join(workdir, "model.json")
-    with contextlib.redirect_stdout(io.StringIO()):
-        cli(["shape-model", *[t["snake"] for t in train], "--out", model, "--overwrite"])
     from segsnake.shapes import load_shape_model
 
-    variances = load_shape_model(model).variances.tolist()
+    models, variances = {}, {}
+    for align in ("affine", "similarity", "rigid"):
+        models[align] = os.path.join(workdir, f"model_{align}.json")
+        with contextlib.redirect_stdout(io.StringIO()):
+            cli(["shape-model", *[t["snake"] for t in train], "--out", models[align],
+                 "--align", align, "--overwrite"])
+        variances[align] = load_shape_model(models[align]).variances.tolist()
     truth, img, cone = _gap_image(shape(GAP_TEST), 99, gap=True)
 
     def dice(a, b):
         return float(2 * (a & b).sum() / max(a.sum() + b.sum(), 1))
 
     runs = []
-    settings = [("none", None, [])]
+    settings = [("none", None, None, [])]
     for w in weights:
-        settings += [("affine", w, []), ("similarity", w, ["--prior-space", "similarity"]),
-                     ("rigid", w, ["--prior-space", "rigid"])]
-        settings += [(f"affine + {k} modes", w, ["--prior-modes", str(k)]) for k in (1, 2, 3, 5)]
-        settings += [(f"{sp} + 3 modes", w, ["--prior-space", sp, "--prior-modes", "3"])
-                     for sp in ("similarity", "rigid")]
-    for name, w, extra in settings:
-        args = [] if w is None else ["--prior", model, "--prior-weight", str(w), *extra]
+        settings += [("affine", w, "affine", [])]
+        settings += [(f"affine + {k} modes", w, "affine", ["--prior-modes", str(k)])
+                     for k in (1, 2, 3, 5)]
+        for sp in ("similarity", "rigid"):
+            settings += [(sp, w, sp, ["--prior-space", sp])]
+            settings += [(f"{sp} + {k} modes", w, sp, ["--prior-space", sp, "--prior-modes", str(k)])
+                         for k in (1, 3)]
+    for name, w, align, extra in settings:
+        args = [] if w is None else ["--prior", models[align], "--prior-weight", str(w), *extra]
         rec, mask = segment("test", img, truth, *args)
-        runs.append({"prior": name, "weight": w, "dice": rec["dice"],
+        runs.append({"prior": name, "weight": w, "model": align, "dice": rec["dice"],
                      "assd_mm": rec["assd_mm"], "hd95_mm": rec["hausdorff95_mm"],
                      "gap_dice": dice(mask & cone, truth & cone),
                      "rest_dice": dice(mask & ~cone, truth & ~cone)})
@@ -258,8 +263,12 @@ def _prior_lines(info: dict) -> list[str]:
              f"Ten phantoms (ellipsoid radii {GAP_RADII.tolist()} mm with three non-affine "
              f"deformations of standard deviations {GAP_SD.tolist()}, blurred, noise 0.1) "
              f"segmented without a prior (Dice {min(g['train_dice']):.3f} to "
-             f"{max(g['train_dice']):.3f}), their snakes into `segsnake shape-model` "
-             f"(variances {', '.join(f'{v:.3g}' for v in g['variances_mm2'][:5])} mm^2, ...). "
+             f"{max(g['train_dice']):.3f}), their snakes into `segsnake shape-model` with "
+             "`--align affine` (the affine rows' model; variances "
+             f"{', '.join(f'{v:.3g}' for v in g['variances_mm2']['affine'][:4])} mm^2, ...), "
+             "`similarity` (variances "
+             f"{', '.join(f'{v:.3g}' for v in g['variances_mm2']['similarity'][:4])}, ...) and "
+             "`rigid` (the rows of those spaces use the model aligned the same way). "
              f"Test phantom: coefficients {GAP_TEST.tolist()} (2 and 1.7 standard "
              f"deviations), and inside a {GAP_DEG:.0f} degree cone around +x the boundary is "
              "replaced by a gentle ramp (no edge). `segment --prior MODEL.json` with the "

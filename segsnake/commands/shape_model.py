@@ -26,6 +26,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("snakes", nargs="+", metavar="SNAKE.json",
                         help="saved snakes of one kind and size (at least two)")
     parser.add_argument("--out", required=True, metavar="MODEL.json", help="output file")
+    parser.add_argument("--align", choices=("affine", "similarity", "rigid"), default="affine",
+                        help="unbiased affine alignment (default), or generalized Procrustes with "
+                             "rotations (+ isotropic scaling): its modes keep the anisotropic "
+                             "variation, for a rigid or similarity prior with --prior-modes")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_output_options(parser)
     parser.set_defaults(func=run)
@@ -58,11 +62,12 @@ def run(args: argparse.Namespace) -> int:
         if (m.kind, m.m1, m.m2) != (first.kind, first.m1, first.m2):
             raise InputError(f"{path}: a {m.kind} with M1={m.m1}, M2={m.m2}; {args.snakes[0]} is a "
                              f"{first.kind} with M1={first.m1}, M2={first.m2} (all snakes must match)")
-    sm = build_shape_model(models, sources=list(args.snakes))
+    sm = build_shape_model(models, sources=list(args.snakes), align=args.align)
     sm.save(args.out, overwrite=args.overwrite)
     summary = {
         "out": args.out,
         "kind": first.kind, "m1": first.m1, "m2": first.m2, "n_shapes": len(models),
+        "align": args.align,
         "max_residual_mm": float(np.max(sm.residuals)),
         "agreement": sm.agreement.tolist(),
         "variances_mm2": sm.variances.tolist(),
