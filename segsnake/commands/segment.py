@@ -92,7 +92,9 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                         "(scaling, translation), translation")
     p.add_argument("--prior-modes", type=int, default=None, metavar="K",
                    help="with a shape-model prior (segsnake shape-model MODEL.json): also allow its "
-                        "first K modes of variation, penalized by their variances (default 0)")
+                        "first K modes of variation, penalized by their variances (default 0); "
+                        "with --prior-space rigid or similarity, build the model with the same "
+                        "shape-model --align")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
