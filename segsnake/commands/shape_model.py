@@ -22,11 +22,13 @@ HELP = "learn a shape model (aligned reference + functional PCA) from saved snak
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    from segsnake.shapes import ALIGNMENTS
+
     parser = subparsers.add_parser("shape-model", help=HELP, description=HELP + ".")
     parser.add_argument("snakes", nargs="+", metavar="SNAKE.json",
                         help="saved snakes of one kind and size (at least two)")
     parser.add_argument("--out", required=True, metavar="MODEL.json", help="output file")
-    parser.add_argument("--align", choices=("affine", "similarity", "rigid"), default="affine",
+    parser.add_argument("--align", choices=ALIGNMENTS, default=ALIGNMENTS[0],
                         help="unbiased affine alignment (default), or generalized Procrustes with "
                              "rotations (+ isotropic scaling): its modes keep the anisotropic "
                              "variation, for a rigid or similarity prior with --prior-modes")
