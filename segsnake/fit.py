@@ -25,16 +25,18 @@ target is met.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from segsnake.parameterize import SphericalMap
 from segsnake.priors import grid_gram
 from segsnake.surfaces import SphereModel, gauss_legendre_grid
+
+if TYPE_CHECKING:  # the parameterization (scipy.interpolate) is imported when a mesh is fitted
+    from segsnake.parameterize import SphericalMap
 
 __all__ = ["DEFAULT_RMS_PERCENT", "FitResult", "fit_mesh", "fit_cloud", "FitError", "M2_SCHEDULE", "QUADRATURE_ORDER", "fit_function", "fit_samples",
            "fit_errors", "fit_until", "FitStep"]
@@ -208,7 +210,7 @@ class FitResult:
 
     steps: list[FitStep]
     rms_target: float | None
-    spherical_map: SphericalMap | None = None
+    spherical_map: "SphericalMap | None" = None
 
     @property
     def model(self) -> SphereModel:
