@@ -26,7 +26,7 @@ DESCRIPTION = ("Segment 3D structures in medical volumes with smooth spline snak
 
 # Order is the order shown in ``segsnake --help``.
 COMMANDS = ("segment", "demo", "phantom", "evaluate", "batch", "shape", "shape-model",
-            "export-points", "render")
+            "export-points", "render", "fit", "morph", "measure")
 
 # Exit codes decided here rather than by an error class (the README's table lists every code).
 EXIT_UNEXPECTED = 1

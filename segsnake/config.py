@@ -39,7 +39,7 @@ __all__ = [
 
 SHAPES = ("sphere", "cylinder")
 FEATURES = ("edge", "surface")
-PRIOR_SPACES = ("affine", "linear", "similarity", "translation")
+PRIOR_SPACES = ("affine", "linear", "similarity", "rigid", "scaling", "translation")
 NAN_POLICIES = ("refuse", "fill")
 POLARITIES = ("auto", "bright", "dark", "none")
 ENERGIES = ("auto", "region", "edge")
@@ -352,6 +352,7 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "prior": _optional(_path),
     "prior_weight": lambda v: _float(v, low=0.0),
     "prior_space": _choice(PRIOR_SPACES),
+    "prior_modes": lambda v: _int(v, low=0),
     "volume": _optional(lambda v: _int(v, low=0)),
     "nan": _choice(NAN_POLICIES),
     "polarity": _choice(POLARITIES),
@@ -399,6 +400,7 @@ class SegmentConfig:
     prior: str | None = None
     prior_weight: float = 1.0  # used only with a prior; 0 switches it off
     prior_space: str = "affine"
+    prior_modes: int = 0  # modes of a shape-model prior (MODEL.json) used by the prior
     volume: int | None = None
     nan: str = "refuse"
     polarity: str = "auto"

@@ -23,8 +23,9 @@ Shape spaces of a reference ``sigma_ref`` (columns ``C`` in the stacked coordina
 
 * ``affine``: ``A sigma_ref + b`` (12 dimensions);
 * ``linear``: ``A sigma_ref`` (9, affine without translation);
-* ``similarity``: ``s sigma_ref + b`` (4: isotropic scaling and translation; rotations do not form
-  a linear space, so this is the linear part of a similarity prior);
+* ``scaling``: ``s sigma_ref + b`` (4: isotropic scaling and translation; rotations do not form
+  a linear space, so the ``rigid`` and ``similarity`` spaces, with rotations, have their own
+  non-linear projector in :mod:`segsnake.procrustes`);
 * ``translation``: ``sigma_ref + b`` (an affine, not linear, set: the prior measures
   ``sigma - sigma_ref`` against the 3 translations).
 
@@ -35,7 +36,7 @@ anything ill-conditioned: with ``B = L L^T`` (Cholesky; B is a Riesz-basis Gram 
 orthonormal basis ``Q`` of ``L^T C`` (SVD, which also copes with a degenerate, e.g. planar,
 reference), ``S = B - (L Q)(L Q)^T``. For ``affine``, ``linear`` and ``translation`` the space is
 a product over the coordinates (each coordinate of ``sigma`` is fitted by the same scalar
-functions), so ``S`` is one ``P x P`` matrix applied to x, y and z; ``similarity`` couples the
+functions), so ``S`` is one ``P x P`` matrix applied to x, y and z; ``scaling`` couples the
 coordinates and uses a ``3P x 3P`` matrix.
 
 Stacked coordinates ("Gamma") follow the thesis: ``stack(params) = params.T.ravel()``, i.e. all
@@ -66,6 +67,7 @@ __all__ = [
     "SPACES",
     "GRAM_ORDER",
     "AffinePrior",
+    "check_same_size",
     "gram_1d",
     "grid_gram",
     "param_gram",
@@ -81,7 +83,7 @@ __all__ = [
     "model_radius",
 ]
 
-SPACES = ("affine", "linear", "similarity", "translation")
+SPACES = ("affine", "linear", "scaling", "translation")
 
 #: The RMS deviation, as a fraction of the snake's radius, that costs ``W`` times the image
 #: energy under a relative prior weight ``W`` (:func:`relative_prior_weight`).
@@ -207,7 +209,7 @@ def shape_space_columns(reference: SplineSurface, space: str) -> NDArray:
     """Columns ``C (3P, d)`` spanning the shape space of ``reference``, in stacked coordinates.
 
     ``affine``: ``A sigma_ref + b`` (12 columns: reference coordinate e into output coordinate d,
-    then the 3 translations); ``linear``: ``A sigma_ref`` (9); ``similarity``: ``sigma_ref`` and
+    then the 3 translations); ``linear``: ``A sigma_ref`` (9); ``scaling``: ``sigma_ref`` and
     the 3 translations (4); ``translation``: the 3 translations (the set ``sigma_ref + b`` is
     affine: :class:`AffinePrior` measures ``sigma - sigma_ref`` against them).
     """
@@ -222,7 +224,7 @@ def shape_space_columns(reference: SplineSurface, space: str) -> NDArray:
                 col = np.zeros((3, n))
                 col[d] = p[:, e]
                 cols.append(col.ravel())
-    elif space == "similarity":
+    elif space == "scaling":
         cols.append(stack(p))
     if space != "linear":
         for d in range(3):
@@ -272,13 +274,13 @@ def _factor(reference: SplineSurface, space: str) -> tuple[NDArray, bool]:
     """``Q``, an orthonormal basis of ``L^T C`` (``B = L L^T``), and whether it is per coordinate.
 
     The B-orthogonal projector is then ``P = L^-T Q Q^T L^T`` and ``S = B (I - P) =
-    L (I - Q Q^T) L^T``. Separable spaces give ``Q (P, d)`` for one coordinate, ``similarity``
+    L (I - Q Q^T) L^T``. Separable spaces give ``Q (P, d)`` for one coordinate, ``scaling``
     gives ``Q (3P, 4)`` on stacked coordinates.
     """
     L = _param_cholesky(reference)
     if space in _SEPARABLE:
         return _orthonormal_range(L.T @ _scalar_columns(reference, space)), True
-    # similarity: same span with the centred reference (better conditioned).
+    # scaling: same span with the centred reference (better conditioned).
     C = shape_space_columns(reference.with_params(_centred(reference)), space)
     Lf = la.block_diag(L, L, L)
     return _orthonormal_range(Lf.T @ C), False
@@ -319,7 +321,7 @@ def prior_matrix(reference: SplineSurface, space: str = "affine") -> tuple[NDArr
     """``S = beta (I - P)`` pulled back to the free parameters, and whether it is per coordinate.
 
     Separable spaces return ``S (P, P)`` with ``||sigma - P sigma||^2 = sum_d p_d^T S p_d``;
-    ``similarity`` returns ``S (3P, 3P)`` acting on :func:`stack` ed parameters.
+    ``scaling`` returns ``S (3P, 3P)`` acting on :func:`stack` ed parameters.
     (:class:`AffinePrior` evaluates the same form as ``||(I - Q Q^T) L^T p||^2``, which keeps
     full relative accuracy for shapes close to the space.)
     """
@@ -336,6 +338,15 @@ def prior_matrix(reference: SplineSurface, space: str = "affine") -> tuple[NDArr
 # ---------------------------------------------------------------------------------------------
 # The prior energy
 # ---------------------------------------------------------------------------------------------
+def check_same_size(model: SplineSurface, reference: SplineSurface, what: str = "the reference"
+                    ) -> None:
+    """ValueError unless ``reference`` has the snake's kind and control-point counts."""
+    if (reference.kind, reference.m1, reference.m2) != (model.kind, model.m1, model.m2):
+        raise ValueError(
+            f"{what} ({reference.kind}, M1={reference.m1}, M2={reference.m2}) must have the "
+            f"snake's kind and control-point counts ({model.kind}, M1={model.m1}, M2={model.m2})")
+
+
 @dataclass
 class AffinePrior:
     """``weight * ||sigma - P sigma||^2_L2``: distance to the shape space of a reference.
@@ -371,12 +382,7 @@ class AffinePrior:
     order: int = 4
 
     def __post_init__(self) -> None:
-        if (self.reference.kind, self.reference.m1, self.reference.m2) != \
-                (self.model.kind, self.model.m1, self.model.m2):
-            raise ValueError(
-                f"the reference ({self.reference.kind}, M1={self.reference.m1}, "
-                f"M2={self.reference.m2}) must have the snake's kind and control-point counts "
-                f"({self.model.kind}, M1={self.model.m1}, M2={self.model.m2})")
+        check_same_size(self.model, self.reference)
         self._Q, self._separable = _cached_factor(self.reference, self.space)
         self._L = _param_cholesky(self.reference)
         self._Lt = np.ascontiguousarray(self._L.T)

@@ -152,6 +152,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         directory or a failed write (exit 5); earlier outputs are left as they were.
     """
     from segsnake.io import load_volume
+    from segsnake.measure import closed_area
     from segsnake.metrics import evaluate_masks
     from segsnake.pipeline import segment_volume
 
@@ -192,6 +193,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         "shape": list(volume.shape),
         "spacing_mm": list(volume.spacing),
         "volume_mm3": float(result.model.volume()),
+        "area_mm2": closed_area(result.model),
         "mask_voxels": int(result.mask.sum()),
         "energy": result.energy,
         "iterations": result.iterations,
@@ -342,7 +344,7 @@ def _prior_energy(config):
     reference's shape space of 10 % of the snake's radius costs ``--prior-weight`` times the
     image energy.
     """
-    from segsnake.priors import AffinePrior, relative_prior_weight
+    from segsnake.priors import relative_prior_weight
     from segsnake.surfaces import load_model
 
     path = config.prior
@@ -369,11 +371,33 @@ def _prior_energy(config):
             (config.m2 is not None and config.m2 != reference.m2):
         raise mismatch(config.shape, config.m1, config.m2)
 
+    shape_model = None
+    if config.prior_modes:
+        from segsnake.shapes import load_shape_model
+
+        try:
+            shape_model = load_shape_model(path)
+        except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise InputError(f"{path}: --prior-modes needs a shape model from segsnake "
+                             f"shape-model ({msg})") from None
+    try:  # options that contradict the prior file: refused before any image work
+        from segsnake.model_prior import build_prior
+
+        build_prior(reference, reference, 1.0, config.prior_space, shape_model, config.prior_modes)
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None
+
     def make(model):
+        from segsnake.model_prior import build_prior
+
         if (reference.kind, reference.m1, reference.m2) != (model.kind, model.m1, model.m2):
             raise mismatch(model.kind, model.m1, model.m2)
-        return AffinePrior(model, reference, weight=relative_prior_weight(model, config.prior_weight),
-                           space=config.prior_space)
+        try:
+            return build_prior(model, reference, relative_prior_weight(model, config.prior_weight),
+                               config.prior_space, shape_model, config.prior_modes)
+        except ValueError as exc:
+            raise InputError(f"{path}: {exc}") from None
 
     return make
 

@@ -22,6 +22,13 @@ orientation (mm of the first snake's image).
 approximating the reference (003 Definition 4). Its parameters are ``A_i p_i + b_i`` (tangent
 vectors without ``b``), so aligned shapes are snakes of the same model.
 
+*Similarity or rigid alignment* (``build_shape_model(..., align="similarity")``, generalized
+Procrustes analysis): each example is mapped onto the current reference by its exact L2
+Procrustes fit ``s R sigma_i + b`` (:mod:`segsnake.procrustes`), the reference becomes the mean of
+the aligned set (its centred L2 norm held at the first example's for ``similarity``, so that it
+does not shrink), until it stops changing. The modes then keep the anisotropic variation that an
+affine alignment removes, which is what a rigid or similarity prior with modes needs.
+
 *Functional PCA* (003 Proposition 7, with the mean removed, as in the usual PCA): with
 ``D = [sigma~_i - mean]`` the Gram matrix ``G = D^T beta D`` (``K x K``, exact L2 inner products)
 has eigenpairs ``(lambda_k, v_k)``; the principal shapes are ``xi_k = D v_k / sqrt(lambda_k)``
@@ -52,6 +59,8 @@ __all__ = [
     "align_to_reference",
     "functional_pca",
     "build_shape_model",
+    "procrustes_alignment",
+    "ALIGNMENTS",
     "load_shape_model",
     "FORMAT",
 ]
@@ -217,7 +226,8 @@ class ShapeModel:
     residuals : ndarray (K,)
         ``||sigma_ref - sigma~_i||_L2`` in mm.
     agreement : ndarray (3,)
-        Leading eigenvalues of Proposition 5 over K (1 = affinely identical examples).
+        Leading eigenvalues of Proposition 5 over K (1 = affinely identical examples); empty for
+        a similarity or rigid alignment.
     sources : list of str
         Where the examples came from (file names), for the record.
     """
@@ -231,6 +241,7 @@ class ShapeModel:
     residuals: NDArray
     agreement: NDArray
     sources: list[str] = field(default_factory=list)
+    space: str = "affine"
 
     @property
     def explained(self) -> NDArray:
@@ -247,9 +258,16 @@ class ShapeModel:
         return self.mean.with_params(self.mean.params + delta)
 
     def coefficients(self, shape: SplineSurface) -> NDArray:
-        """Mode coefficients (in standard deviations) of a snake, after aligning it."""
-        aligned, _, _ = align_to_reference([shape], self.reference)
-        d = aligned[0].params - self.mean.params
+        """Mode coefficients (in standard deviations) of a snake, after aligning it (with the
+        model's own alignment)."""
+        if self.space == "affine":
+            aligned_params = align_to_reference([shape], self.reference)[0][0].params
+        else:
+            from segsnake.procrustes import procrustes_fit
+
+            sc, R, b = procrustes_fit(shape, self.reference.params, shape.params, self.space)
+            aligned_params = sc * shape.params @ R.T + _translation(shape)[:, None] * b[None, :]
+        d = aligned_params - self.mean.params
         proj = np.array([inner_product(self.mean, d, m) for m in self.modes])
         return proj / np.sqrt(np.maximum(self.variances, 1e-300))
 
@@ -260,7 +278,7 @@ class ShapeModel:
             "format": FORMAT,
             "version": FORMAT_VERSION,
             "model": self.reference.to_dict(),
-            "space": "affine",
+            "space": self.space,
             "metric": "L2 over the parameter domain (u, v) in [0, 1]^2, exact Gram matrices",
             "units": "mm (scaled index space of the first example); variances in mm^2",
             "n_shapes": len(self.aligned),
@@ -299,6 +317,7 @@ class ShapeModel:
             residuals=np.asarray([s["residual_mm"] for s in shapes], dtype=np.float64),
             agreement=np.asarray(d.get("agreement", []), dtype=np.float64),
             sources=[s.get("source", "") for s in shapes],
+            space=str(d.get("space", "affine")),
         )
 
     def save(self, path: str | os.PathLike, overwrite: bool = False) -> None:
@@ -314,24 +333,82 @@ class ShapeModel:
         atomic_write(path, writer, overwrite=overwrite)
 
 
-def build_shape_model(shapes: Sequence[SplineSurface], sources: Sequence[str] | None = None
-                      ) -> ShapeModel:
+#: Alignments :func:`build_shape_model` offers.
+ALIGNMENTS = ("affine", "similarity", "rigid")
+
+#: Generalized Procrustes: iterations at most, and the relative change of the reference that stops.
+GPA_ITERATIONS = 100
+GPA_TOL = 1e-12
+
+
+def procrustes_alignment(shapes: Sequence[SplineSurface], space: str
+                         ) -> tuple[SplineSurface, list[SplineSurface],
+                                    list[tuple[NDArray, NDArray]], NDArray]:
+    """Generalized Procrustes analysis (module docstring): reference, aligned set, ``(s R, b)``
+    maps and residuals ``||ref - aligned_i||_L2`` (mm)."""
+    from segsnake.procrustes import procrustes_fit
+
+    shapes = list(shapes)
+    _check_same(shapes)
+    t = _translation(shapes[0])
+    ref = shapes[0].params.copy()
+    c0, _ = _centre(shapes[0], ref)
+    norm0 = np.sqrt(inner_product(shapes[0], c0, c0))
+    transforms: list[tuple[NDArray, NDArray]] = []
+    aligned_params: list[NDArray] = []
+    for _ in range(GPA_ITERATIONS):
+        transforms, aligned_params = [], []
+        for s in shapes:
+            sc, R, b = procrustes_fit(s, ref, s.params, space)  # ref ~ sc R sigma_i + b
+            transforms.append((sc * R, b))
+            aligned_params.append(sc * s.params @ R.T + t[:, None] * b[None, :])
+        new = np.mean(aligned_params, axis=0)
+        if space == "similarity":
+            centred, g = _centre(shapes[0], new)
+            norm = np.sqrt(inner_product(shapes[0], centred, centred))
+            new = centred * (norm0 / max(norm, 1e-300)) + t[:, None] * g[None, :]
+        change = l2_norm(shapes[0], new - ref)
+        ref = new
+        if change <= GPA_TOL * max(norm0, 1e-300):
+            break
+    reference = shapes[0].with_params(ref)
+    aligned = [shapes[0].with_params(p) for p in aligned_params]
+    residuals = np.array([l2_norm(reference, ref - p) for p in aligned_params])
+    return reference, aligned, transforms, residuals
+
+
+def build_shape_model(shapes: Sequence[SplineSurface], sources: Sequence[str] | None = None,
+                      align: str = "affine") -> ShapeModel:
     """Reference, aligned set and functional PCA of snakes of one kind and size.
+
+    Parameters
+    ----------
+    shapes : sequence of SplineSurface
+    sources : sequence of str, optional
+        File names, for the record.
+    align : {"affine", "similarity", "rigid"}
+        The unbiased affine alignment (Proposition 5), or generalized Procrustes.
 
     Raises
     ------
     ValueError
-        Fewer than two shapes, or shapes of different kinds or sizes.
+        Fewer than two shapes, shapes of different kinds or sizes, an unknown alignment.
     """
     shapes = list(shapes)
     if len(shapes) < 2:
         raise ValueError(f"a shape model needs at least two shapes, got {len(shapes)}")
+    if align not in ALIGNMENTS:
+        raise ValueError(f"unknown alignment {align!r}; expected one of {', '.join(ALIGNMENTS)}")
     _check_same(shapes)
-    reference, agreement = unbiased_reference(shapes)
-    aligned, transforms, residuals = align_to_reference(shapes, reference)
+    if align == "affine":
+        reference, agreement = unbiased_reference(shapes)
+        aligned, transforms, residuals = align_to_reference(shapes, reference)
+    else:
+        reference, aligned, transforms, residuals = procrustes_alignment(shapes, align)
+        agreement = np.zeros(0)
     mean, modes, variances = functional_pca(aligned)
     return ShapeModel(reference, mean, modes, variances, aligned, transforms, residuals,
-                      agreement, list(sources or []))
+                      agreement, list(sources or []), align)
 
 
 def load_shape_model(path: str | os.PathLike) -> ShapeModel:

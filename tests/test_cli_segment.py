@@ -141,6 +141,14 @@ def test_segment_end_to_end(ball, tmp_path, capsys):
     model = load_model(out / "snake.json")
     assert model.kind == "sphere" and (model.m1, model.m2) == (9, 9)
     assert model.volume() == pytest.approx(summary["volume_mm3"], rel=1e-9)
+    # ... and so is its area: exact, above the isoperimetric bound, near the mask's surface
+    from segsnake.measure import closed_area
+    from skimage.measure import marching_cubes, mesh_surface_area
+
+    assert summary["area_mm2"] == pytest.approx(closed_area(model), rel=1e-12)
+    assert summary["area_mm2"] > (36 * np.pi * summary["volume_mm3"] ** 2) ** (1 / 3)
+    verts, faces, _, _ = marching_cubes(np.pad(data, 1).astype(float), 0.5)
+    assert summary["area_mm2"] == pytest.approx(mesh_surface_area(verts, faces), rel=0.1)
     record = json.loads((out / "snake.json").read_text())
     assert record["format"] == "segsnake-result" and len(record["energy_history"]) >= 1
 

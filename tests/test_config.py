@@ -43,7 +43,8 @@ def test_defaults_are_the_documented_ones():
     assert c.mesh is None  # no extra surface file unless asked
     assert c.energy == "auto"  # pipeline.region_energy decides
     assert c.init is None  # a new initial shape unless a saved snake is given
-    assert len(SegmentConfig.keys()) == 25
+    assert c.prior_modes == 0  # a shape-model prior uses no modes unless asked
+    assert len(SegmentConfig.keys()) == 26
 
 
 def test_to_dict_round_trip_and_normalisation():
@@ -143,7 +144,7 @@ def test_unknown_key_without_close_match_has_no_suggestion(tmp_path):
     ("coarse_to_fine: 'no'", "coarse_to_fine: must be true or false, got 'no' (a string)"),
     ("shape: sphre", "shape: must be one of sphere, cylinder; got 'sphre' (a string) (did you mean 'sphere'?)"),
     ("nan: fil", "nan: must be one of refuse, fill; got 'fil' (a string) (did you mean 'fill'?)"),
-    ("prior_space: rigid", "prior_space: must be one of affine, linear, similarity, translation"),
+    ("prior_space: kendall", "prior_space: must be one of affine, linear, similarity, rigid, scaling, translation"),
     ("threshold: high", "threshold: must be 'auto' or a number, got 'high'"),
     ("prior_weight: -0.5", "prior_weight: must be >= 0, got -0.5"),
     ("volume: -1", "volume: must be >= 0, got -1"),

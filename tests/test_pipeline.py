@@ -159,7 +159,7 @@ def test_flux_frame_and_energies_in_the_turned_frame(monkeypatch):
         assert abs((r1 - r0).mean(axis=0)[0]) < 1e-9 * np.linalg.norm(r1 - r0) or frame.perm
         assert np.allclose(frame.model_out(inside).params, model.params)
         assert np.isclose(inside.volume(), model.volume())  # a rotation keeps the orientation
-        prior = AffinePrior(model, CylinderModel.unit(6, 3), weight=1.0, space="similarity")
+        prior = AffinePrior(model, CylinderModel.unit(6, 3), weight=1.0, space="scaling")
         v, g = prior.value_and_grad(model.params)
         vt, gt = frame.energy_in(prior, model.is_vector).value_and_grad(inside.params)
         assert abs(vt - v) < 1e-10 * abs(v) and np.allclose(gt, g @ frame.M)

@@ -58,7 +58,7 @@ class QuadraturePrior:
                     col = np.zeros((n, 3))
                     col[:, d] = ref[:, e]
                     cols.append(col.ravel())
-        elif space == "similarity":
+        elif space == "scaling":
             cols.append(ref.ravel())
         if space != "linear":
             for d in range(3):
@@ -145,7 +145,7 @@ def _element_of(space, ref, rng):
         return ref.transformed(A, b).params
     if space == "linear":
         return ref.transformed(A).params
-    if space == "similarity":
+    if space == "scaling":
         return ref.transformed(2.5 * np.eye(3), b).params
     return ref.transformed(np.zeros((3, 3)), b).params  # a translation (constant surface)
 
@@ -215,7 +215,7 @@ def test_translation_space_allows_only_translations():
     prior = AffinePrior(ref, ref, space="translation")
     assert prior.value_and_grad(ref.transformed(np.eye(3), [1, 2, 3]).params)[0] < 1e-24
     assert prior.value_and_grad(ref.transformed(2 * np.eye(3)).params)[0] > 0.1
-    sim = AffinePrior(ref, ref, space="similarity")
+    sim = AffinePrior(ref, ref, space="scaling")
     assert sim.value_and_grad(ref.transformed(2 * np.eye(3), [1, 2, 3]).params)[0] < 1e-24
     assert sim.value_and_grad(ref.transformed(np.diag([2, 1, 1])).params)[0] > 0.01
 
@@ -267,7 +267,8 @@ def test_relative_weight_is_scale_free():
 
 # -- segment --prior ---------------------------------------------------------------------------
 def _config(**kw):
-    base = dict(prior=None, prior_weight=1.0, prior_space="affine", shape="sphere", m1=None, m2=None)
+    base = dict(prior=None, prior_weight=1.0, prior_space="affine", prior_modes=0, shape="sphere",
+                m1=None, m2=None)
     base.update(kw)
     return SimpleNamespace(**base)
 

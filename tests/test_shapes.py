@@ -238,7 +238,7 @@ def test_shape_model_command_and_its_use_as_a_prior(tmp_path, capsys):
     # segment --prior MODEL.json: the reference's affine images cost nothing, others do.
     from segsnake.runner import _prior_energy
 
-    config = SimpleNamespace(prior=str(out), prior_weight=1.0, prior_space="affine",
+    config = SimpleNamespace(prior=str(out), prior_weight=1.0, prior_space="affine", prior_modes=0,
                              shape="sphere", m1=8, m2=7)
     make = _prior_energy(config)
     energy = make(sm.reference)
@@ -280,3 +280,34 @@ def test_cli_subprocess_shape_then_shape_model(tmp_path):
     sm = load_shape_model(tmp_path / "m.json")
     assert sm.residuals.max() < 1e-9 and np.abs(sm.agreement - 1).max() < 1e-12
     assert isinstance(sm, ShapeModel)
+
+
+@pytest.mark.parametrize("align", ["similarity", "rigid"])
+def test_procrustes_shape_model_keeps_anisotropic_variation(align, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    base = BASES[0]
+    rng = np.random.default_rng(5)
+    stretch = base.with_params(base.params @ np.diag([1.3, 1.0, 0.8]).T).params - base.params
+    shapes, amounts = [], rng.normal(size=8)
+    for k, a in enumerate(amounts):
+        R = Rotation.random(random_state=k).as_matrix()
+        s = 1.0 if align == "rigid" else float(np.exp(0.2 * rng.normal()))
+        shapes.append(base.with_params(base.params + a * stretch).transformed(s * R, rng.normal(size=3) * 20))
+    sm = build_shape_model(shapes, align=align)
+    assert sm.space == align and len(sm.agreement) == 0
+    for A, _ in sm.transforms:  # every map is s R: A^T A = s^2 I, det > 0
+        s2 = np.trace(A.T @ A) / 3
+        assert np.allclose(A.T @ A, s2 * np.eye(3), atol=1e-9 * s2) and np.linalg.det(A) > 0
+        if align == "rigid":
+            assert s2 == pytest.approx(1.0, abs=1e-9)
+    # one mode carries (nearly) all the variance: the stretch an affine alignment would remove
+    assert sm.explained[0] > 0.97
+    affine = build_shape_model(shapes)
+    assert np.sum(affine.variances) < 1e-3 * np.sum(sm.variances)
+    # round trip keeps the alignment; coefficients of an example are finite and reproduce it
+    sm.save(tmp_path / "m.json")
+    back = load_shape_model(tmp_path / "m.json")
+    assert back.space == align
+    c = back.coefficients(shapes[0])
+    assert np.isfinite(c).all() and abs(c[0]) > 0.1

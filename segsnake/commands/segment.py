@@ -43,6 +43,8 @@ def _position_value(flag: str, values: list[str] | None) -> list[float] | str | 
 
 def add_segment_options(parser: argparse.ArgumentParser) -> None:
     """The options shared by ``segment`` and (as YAML keys) by ``batch`` cases."""
+    from segsnake.config import PRIOR_SPACES
+
     g = parser.add_argument_group("initialization (voxel indices along the array axes, or world mm "
                                   "with --world)")
     g.add_argument("--shape", choices=("sphere", "cylinder"), default=None,
@@ -94,8 +96,15 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                    help="prior strength relative to the image energy: an RMS deviation from the "
                         "reference's shape space of 10%% of the snake's radius costs W times the "
                         "image energy (1 strong, 0.1 mild; default 1 when --prior is given, 0 = off)")
-    p.add_argument("--prior-space", choices=("affine", "linear", "similarity", "translation"),
-                   default=None, help="transformations the prior ignores (default affine)")
+    p.add_argument("--prior-space", choices=PRIOR_SPACES, default=None,
+                   help="transformations the prior ignores: affine (default), linear, similarity "
+                        "(rotation, scaling, translation), rigid (rotation, translation), scaling "
+                        "(scaling, translation), translation")
+    p.add_argument("--prior-modes", type=int, default=None, metavar="K",
+                   help="with a shape-model prior (segsnake shape-model MODEL.json): also allow its "
+                        "first K modes of variation, penalized by their variances (default 0); "
+                        "with --prior-space rigid or similarity, build the model with the same "
+                        "shape-model --align")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -122,7 +131,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "world", "m1", "m2",
                "scale", "feature", "polarity", "energy", "threshold", "seed_point", "max_iter",
-               "volume", "nan", "prior", "prior_weight", "prior_space", "mesh", "init")
+               "volume", "nan", "prior", "prior_weight", "prior_space", "prior_modes", "mesh",
+               "init")
 
 
 def config_from_args(args: argparse.Namespace):

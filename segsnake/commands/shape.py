@@ -5,8 +5,8 @@ Positions and lengths are in mm of scaled index space (``p = (i*sx, j*sy, k*sz)`
 times the image's spacing). Under the default ``--prior-space affine`` only the shape up to an
 affine map matters, so any sphere means "stay close to some ellipsoid" and any straight
 cylinder "close to some elliptic cylinder", whatever the units and position; the position,
-size and orientation given here matter only for the ``similarity``, ``translation`` and
-``linear`` spaces.
+size and orientation given here matter only for the ``similarity``, ``rigid``, ``scaling``,
+``translation`` and ``linear`` spaces.
 """
 
 from __future__ import annotations

@@ -22,17 +22,24 @@ HELP = "learn a shape model (aligned reference + functional PCA) from saved snak
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    from segsnake.shapes import ALIGNMENTS
+
     parser = subparsers.add_parser("shape-model", help=HELP, description=HELP + ".")
     parser.add_argument("snakes", nargs="+", metavar="SNAKE.json",
                         help="saved snakes of one kind and size (at least two)")
     parser.add_argument("--out", required=True, metavar="MODEL.json", help="output file")
+    parser.add_argument("--align", choices=ALIGNMENTS, default=ALIGNMENTS[0],
+                        help="unbiased affine alignment (default), or generalized Procrustes with "
+                             "rotations (+ isotropic scaling): its modes keep the anisotropic "
+                             "variation, for a rigid or similarity prior with --prior-modes")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_output_options(parser)
     parser.set_defaults(func=run)
     return parser
 
 
-def _load(path: str):
+def load_snake(path: str):
+    """A saved model (``snake.json``, a reference, a shape model) or InputError naming the file."""
     from segsnake.surfaces import load_model
 
     try:
@@ -51,17 +58,18 @@ def run(args: argparse.Namespace) -> int:
     if len(args.snakes) < 2:
         raise ConfigError(f"shape-model needs at least two snakes, got {len(args.snakes)}")
     check_not_input(args.out, *args.snakes)
-    models = [_load(p) for p in args.snakes]
+    models = [load_snake(p) for p in args.snakes]
     first = models[0]
     for path, m in zip(args.snakes, models):
         if (m.kind, m.m1, m.m2) != (first.kind, first.m1, first.m2):
             raise InputError(f"{path}: a {m.kind} with M1={m.m1}, M2={m.m2}; {args.snakes[0]} is a "
                              f"{first.kind} with M1={first.m1}, M2={first.m2} (all snakes must match)")
-    sm = build_shape_model(models, sources=list(args.snakes))
+    sm = build_shape_model(models, sources=list(args.snakes), align=args.align)
     sm.save(args.out, overwrite=args.overwrite)
     summary = {
         "out": args.out,
         "kind": first.kind, "m1": first.m1, "m2": first.m2, "n_shapes": len(models),
+        "align": args.align,
         "max_residual_mm": float(np.max(sm.residuals)),
         "agreement": sm.agreement.tolist(),
         "variances_mm2": sm.variances.tolist(),
