@@ -16,8 +16,9 @@ Tools (settings in :data:`PEER_PARAMS`, the reasons in the README):
     the brain only: ``segsnake segment`` with no initialization at all.
 ``segsnake, perfect edges``
     the ceiling of model and optimizer: the same command on the reference mask itself as the
-    image, with the click; the full run tries the control grids in :data:`CEILING_M` and
-    reports the best with its M.
+    image, with the click; a sphere with its default options (the region energy chooses M), a
+    cylinder on each control grid of :data:`CEILING_M` (the full run; the best is reported
+    with its M).
 ``BET``, ``ROBEX``
     the brain only, whole-head tools that take no click: ``benchmarks/real/brain_tools.py``
     runs each in a virtual environment of its own, with its default settings.
@@ -89,7 +90,7 @@ TUNE_GRID: dict[str, dict[str, list]] = {
 #: ITK-SNAP user draws a box around the structure before running its snake.
 ROI_MARGIN_MM = 20.0
 #: Control grids (m1, m2) the perfect-edge ceiling tries (the first is segsnake's default).
-CEILING_M = {"sphere": [(9, 9), (13, 13), (17, 17)], "cylinder": [(8, 4), (12, 6), (16, 8)]}
+CEILING_M = {"sphere": [None], "cylinder": [(8, 4), (12, 6), (16, 8)]}
 #: Seconds before a tool's process is stopped and its run recorded as failed.
 TIMEOUT_S = 1800.0
 METRICS = ("dice", "jaccard", "hausdorff95_mm", "assd_mm")
@@ -176,7 +177,8 @@ def run_segsnake(image: str, init: dict | None, tmp: str, extra: list[str] | Non
         with open(os.path.join(out, "snake.json")) as fh:
             saved = json.load(fh)
         res["warnings"] = saved["summary"].get("warnings", [])
-        res["notes"] = {"edge_support": saved["settings"].get("edge_support")}
+        res["notes"] = {k: saved["settings"].get(k) for k in ("edge_support", "separation")}
+        res["m"] = [saved["model"]["m1"], saved["model"]["m2"]]
     return res
 
 
@@ -293,10 +295,11 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
             record(NO_CLICK, "none", None, run_segsnake(case["image"], None, tmp))
         if CEILING in tools:  # the reference itself (0/1 on the same grid) as the image
             grids = CEILING_M[case["init"]["shape"]][: 1 if quick else None]
-            for m1, m2 in grids:
-                record(CEILING, "click", case["init"],
-                       run_segsnake(case["truth"], case["init"], tmp,
-                                    ["--m1", str(m1), "--m2", str(m2)]), m=[m1, m2])
+            for grid in grids:
+                res = run_segsnake(case["truth"], case["init"], tmp,
+                                   None if grid is None else ["--m1", str(grid[0]),
+                                                              "--m2", str(grid[1])])
+                record(CEILING, "click", case["init"], res, m=res.get("m") or list(grid or ()))
         for tool in (t for t in BRAIN_TOOLS if t in tools and case["name"] == BRAIN_CASE):
             import brain_tools
 

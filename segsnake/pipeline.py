@@ -97,6 +97,7 @@ class SegmentResult:
     polarity: str
     init_model: SplineSurface
     settings: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
 
 def auto_init(image: NDArray, spacing: Sequence[float],
@@ -447,17 +448,25 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         run.timings["edge_map_s"] += time.perf_counter() - t0
         model = run.region(model, w, f"two classes, round {k + 1}")
         del w
-        if k == p.two_class_rounds - 1 and config.m1 is None and config.m2 is None:
+        if k == p.two_class_rounds - 1 and config.coarse_to_fine and config.m1 is None \
+                and config.m2 is None:
             model = _finer_grids(run, model, p)
     t0 = time.perf_counter()
     mask = _final_mask(model, image.shape, sp)
     run.timings["mask_s"] = time.perf_counter() - t0
     report("done", 1.0)
+    on_step = rg.boundary_fraction(image_s, model, sp, polarity,
+                                   p.step_spreads * intensity.sigma, p.step_depth_mm)
+    warnings = [] if on_step >= p.min_boundary_fraction else [
+        f"possibly no segmentation: only {on_step:.0%} of the surface lies on a step of the "
+        f"image (expected at least {p.min_boundary_fraction:.0%}); check the result"]
     settings = {"energy": "region", "intensity_model": intensity.to_dict(),
                 "contrast": contrast, "separation": contrast / intensity.sigma,
+                "boundary_fraction": on_step,
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
-                         run.timings, "bright" if polarity > 0 else "dark", init, settings)
+                         run.timings, "bright" if polarity > 0 else "dark", init, settings,
+                         warnings)
 
 
 def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:

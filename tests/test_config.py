@@ -38,7 +38,7 @@ def test_defaults_are_the_documented_ones():
     c = SegmentConfig()
     assert (c.shape, c.feature, c.threshold, c.max_iter, c.tol) == ("sphere", "edge", "auto", 300, 1e-6)
     assert (c.coarse_to_fine, c.prior_weight, c.prior_space, c.nan, c.polarity, c.world) == (
-        True, 1.0, "affine", "refuse", "auto", False)
+        False, 1.0, "affine", "refuse", "auto", False)
     assert c.m1 is c.m2 is c.scale is c.center is c.volume is None
     assert c.mesh is None  # no extra surface file unless asked
     assert c.energy == "auto"  # pipeline.region_energy decides
