@@ -407,7 +407,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     run.timings["edge_map_s"] = time.perf_counter() - t0
     report("region", 0.1)
     if not on_boundary:
-        model = run.region(model, w_click, "region")
+        model = run.region(model, w_click, "region", p.interim_tol)
     report("two classes", 0.5)
 
     for k in range(p.two_class_rounds + 1):
@@ -446,7 +446,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             w += rg.edge_density(image, sp, polarity, contrast, p.edge_length_mm,
                                  p.edge_smooth_mm)
         run.timings["edge_map_s"] += time.perf_counter() - t0
-        model = run.region(model, w, f"two classes, round {k + 1}")
+        model = run.region(model, w, f"two classes, round {k + 1}",
+                           None if k == p.two_class_rounds - 1 else p.interim_tol)
         del w
         if k == p.two_class_rounds - 1 and config.coarse_to_fine and config.m1 is None \
                 and config.m2 is None:
@@ -662,7 +663,7 @@ class _Run:
         self.history.append({"stage": name, **res})
         return model
 
-    def region(self, model, density, name: str):
+    def region(self, model, density, name: str, tol: float | None = None):
         """Minimize the volume integral of ``density`` (:mod:`segsnake.region`; an array, or
         its lookup); ``self.lookup`` keeps the lookup."""
         from segsnake.lookup import Lookup
@@ -674,7 +675,7 @@ class _Run:
         self.lookup = lookup = density
         p = self.region_params
         model, res = _run_stage(model, lookup, 1.0, self.config, self.bounds, self.extra,
-                                p.step_mm, p.edge_smooth_mm, region=True)
+                                p.step_mm, p.edge_smooth_mm, tol=tol, region=True)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         self.history.append({"stage": name, **res})

@@ -73,6 +73,11 @@ class RegionParams:
     finer_m: tuple[int, ...] = (13, 17)
     #: ... each kept while it lowers the image energy by more than this fraction of it.
     finer_gain: float = 0.01
+    #: Relative energy change per iteration at which the stages before the last stop: each
+    #: only places the surface for the next one's reading of the outside (measured on a lobed
+    #: blob: the first stage crept by 4e-5 per iteration for 200 iterations into the lobes,
+    #: which the next rounds reach anyway); the last stage uses the ``tol`` option.
+    interim_tol: float = 1e-4
     #: Longest move of the surface per optimizer step (mm): about the smoothing widths, so that a
     #: step cannot jump across a boundary it has not seen.
     step_mm: float = 2.0
