@@ -97,7 +97,6 @@ class SegmentResult:
     polarity: str
     init_model: SplineSurface
     settings: dict[str, Any] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
 
 
 def auto_init(image: NDArray, spacing: Sequence[float],
@@ -458,16 +457,12 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
-    warnings = [] if on_step >= p.min_boundary_fraction else [
-        f"possibly no segmentation: only {on_step:.0%} of the surface lies on a step of the "
-        f"image (expected at least {p.min_boundary_fraction:.0%}); check the result"]
     settings = {"energy": "region", "intensity_model": intensity.to_dict(),
                 "contrast": contrast, "separation": contrast / intensity.sigma,
                 "boundary_fraction": on_step,
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
-                         run.timings, "bright" if polarity > 0 else "dark", init, settings,
-                         warnings)
+                         run.timings, "bright" if polarity > 0 else "dark", init, settings)
 
 
 def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:

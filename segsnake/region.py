@@ -84,13 +84,13 @@ class RegionParams:
     #: Below this contrast between inside and outside, in units of the click's spread, the
     #: first stage found no boundary (a step of one spread is what noise alone gives).
     min_separation: float = 1.0
-    #: Quality: the surface is on a step where the intensity ``step_depth_mm`` inside and outside
-    #: it differ, with the object's polarity, by more than ``step_spreads`` click spreads (twice
-    #: the noise's spread is what a real step exceeds); a result with less than
-    #: ``min_boundary_fraction`` of its area on a step gets a warning.
+    #: Quality score (reported, not acted on): the surface is on a step where the intensity
+    #: ``step_depth_mm`` inside and outside it differ, with the object's polarity, by more than
+    #: ``step_spreads`` click spreads (twice the noise's spread is what a real step exceeds).
+    #: (A warning below half of the area was tried: on the real benchmark it flagged brains of
+    #: Dice 0.92-0.94 and missed a thalamus of 0.11, so it is not a failure test.)
     step_depth_mm: float = 2.0
     step_spreads: float = 2.0
-    min_boundary_fraction: float = 0.5
     #: Smallest spread of the intensity model, as a fraction of the image's range: intensities
     #: closer than this are one tissue (a noise-free image has no spread at all).
     min_sigma_fraction: float = 0.01

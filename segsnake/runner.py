@@ -201,8 +201,7 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         "warnings": list(volume.warnings) + truth_warnings + [
             f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
             f"its order (iteration or round cap reached): the surface may be less accurate"
-            for i, h in enumerate(result.history) if not h.get("quadrature_resolved", True)]
-        + result.warnings,
+            for i, h in enumerate(result.history) if not h.get("quadrature_resolved", True)],
     }
     quality = {k: result.settings[k] for k in ("separation", "boundary_fraction")
                if k in result.settings}

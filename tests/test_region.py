@@ -134,3 +134,17 @@ def test_coarse_to_fine_keeps_a_finer_grid_only_when_it_pays():
                            region_params=RegionParams(finer_gain=1e-4))
     assert cheap.model.m1 == cheap.model.m2 == 17
     assert dice(cheap.mask, ph.truth.astype(bool)) >= dice(dear.mask, ph.truth.astype(bool)) - 0.002
+
+
+def test_boundary_fraction_is_the_share_of_the_surface_on_a_step():
+    from segsnake.region import boundary_fraction
+    from segsnake.surfaces import SphereModel
+
+    n, r = 40, 10.0
+    x = np.indices((n, n, n)).astype(np.float32) - 20.0
+    image = np.where(np.sqrt((x ** 2).sum(0)) < r, 100.0, 20.0).astype(np.float32)
+    on = SphereModel.unit(9, 9).transformed(r * np.eye(3), [20.0, 20.0, 20.0])
+    assert boundary_fraction(image, on, (1.0, 1.0, 1.0), 1, 10.0, 2.0) == pytest.approx(1.0)
+    assert boundary_fraction(image, on, (1.0, 1.0, 1.0), -1, 10.0, 2.0) == 0.0  # wrong polarity
+    inside = SphereModel.unit(9, 9).transformed(4.0 * np.eye(3), [20.0, 20.0, 20.0])
+    assert boundary_fraction(image, inside, (1.0, 1.0, 1.0), 1, 10.0, 2.0) == 0.0
