@@ -92,6 +92,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=18)
     ap.add_argument("--json")
     args = ap.parse_args()
+    from machine import machine_info
+
+    print(json.dumps(machine_info()), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         images = {}

@@ -76,7 +76,7 @@ from segsnake.config import (
 )
 from segsnake import cancel
 from segsnake.errors import ConfigError, InputError, OutputError, SegsnakeError
-from segsnake.outdir import make_dirs, recover, remove_empty_dirs, try_lock
+from segsnake.outdir import fsync_dir, make_dirs, recover, remove_empty_dirs, try_lock
 from segsnake.jsonable import jsonable as _jsonable
 from segsnake.parallel import set_threads, threads as parallel_threads
 
@@ -643,15 +643,6 @@ def _csv_row(record: dict[str, Any]) -> list[str]:
     return row
 
 
-def _fsync_dir(path: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 def _write_atomic(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -664,7 +655,7 @@ def _write_atomic(path: Path, text: str) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 class ResultsWriter:
@@ -700,7 +691,7 @@ class ResultsWriter:
         if self._cfh.tell() == 0:
             csv.writer(self._cfh, lineterminator="\n").writerow(RESULT_COLUMNS)
             self._sync(self._cfh)
-        _fsync_dir(self.dir)
+        fsync_dir(self.dir)
 
     @staticmethod
     def _sync(fh: io.TextIOWrapper) -> None:
@@ -777,6 +768,22 @@ def _mp_context(runner: str) -> mp.context.BaseContext:
             pass
     # Only effective before the server first starts (it is one per parent process).
     ctx.set_forkserver_preload(preload)
+    # The server (and the resource tracker) ignore SIGINT only once they have imported: a Ctrl-C
+    # to the process group before would print their traceback. So they start with SIGINT ignored
+    # (an ignored signal stays ignored through fork and exec; the cases the server forks install
+    # their own handlers in _child_main). Meanwhile SIGINT is also blocked here, so that a Ctrl-C
+    # in that moment stays pending (Linux never discards a blocked signal) and reaches this
+    # process once its handler is back.
+    if threading.current_thread() is threading.main_thread():
+        from multiprocessing import forkserver
+
+        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        old_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            forkserver.ensure_running()
+        finally:
+            signal.signal(signal.SIGINT, old_handler)
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
     return ctx
 
 

@@ -143,37 +143,54 @@ def fmt_bytes(n: float) -> str:
     return f"{n:.1f} PB"  # pragma: no cover
 
 
-def _cgroup_limit_bytes(root: str = "/sys/fs/cgroup") -> int:
-    """The memory limit of this process's cgroup (v2 ``memory.max`` or v1
-    ``memory.limit_in_bytes``, of its own group or the mount's root), 0 if none."""
-    candidates = []
+def _read_limit(directory: str) -> int | None:
+    """The memory limit file of one cgroup directory: bytes, 0 for none, None if absent."""
+    for name in ("memory.max", "memory.limit_in_bytes"):
+        try:
+            with open(os.path.join(directory, name), encoding="utf-8") as fh:
+                text = fh.read().strip()
+        except OSError:
+            continue
+        if text == "max":
+            return 0
+        try:
+            value = int(text)
+        except ValueError:
+            continue
+        # cgroup v1 writes "no limit" as a huge number (PAGE_COUNTER_MAX pages).
+        return value if 0 < value < 1 << 60 else 0
+    return None
+
+
+def _cgroup_limit_bytes(root: str = "/sys/fs/cgroup", membership: str = "/proc/self/cgroup"
+                        ) -> int:
+    """The memory limit of this process's cgroup, 0 if none: the smallest v2 ``memory.max`` or
+    v1 ``memory.limit_in_bytes`` of its group (``membership`` names it) and the group's
+    ancestors up to ``root`` (v2) or ``root/memory`` (v1), a parent's limit bounding its
+    children."""
+    groups = []
     try:
-        with open("/proc/self/cgroup", encoding="utf-8") as fh:
+        with open(membership, encoding="utf-8") as fh:
             for line in fh:
                 parts = line.strip().split(":", 2)
-                if len(parts) == 3 and (parts[1] == "" or "memory" in parts[1].split(",")):
-                    rel = parts[2].lstrip("/")
-                    sub = "" if parts[1] == "" else "memory"
-                    candidates.append(os.path.join(root, sub, rel))
+                if len(parts) == 3 and parts[1] == "":
+                    groups.append((root, parts[2]))
+                elif len(parts) == 3 and "memory" in parts[1].split(","):
+                    groups.append((os.path.join(root, "memory"), parts[2]))
     except OSError:
         pass
-    candidates += [root, os.path.join(root, "memory")]
-    for d in candidates:
-        for name in ("memory.max", "memory.limit_in_bytes"):
-            try:
-                with open(os.path.join(d, name), encoding="utf-8") as fh:
-                    text = fh.read().strip()
-            except OSError:
-                continue
-            if text == "max":
-                return 0
-            try:
-                value = int(text)
-            except ValueError:
-                continue
-            # cgroup v1 writes "no limit" as a huge number (PAGE_COUNTER_MAX pages).
-            return value if 0 < value < 1 << 60 else 0
-    return 0
+    groups += [(root, "/"), (os.path.join(root, "memory"), "/")]
+    limits = []
+    for mount, rel in groups:
+        d = os.path.normpath(os.path.join(mount, rel.lstrip("/")))
+        while True:  # the group, then each ancestor up to the mount (inside a container's view)
+            value = _read_limit(d) if os.path.isdir(d) else None
+            if value:
+                limits.append(value)
+            if d == os.path.normpath(mount) or len(d) <= len(os.path.normpath(mount)):
+                break
+            d = os.path.dirname(d)
+    return min(limits) if limits else 0
 
 
 def _address_space_left() -> int:
@@ -830,12 +847,9 @@ def atomic_write(
     except BaseException:
         _remove(tmp)
         raise
-    with contextlib.suppress(OSError):
-        dfd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+    from segsnake.outdir import fsync_dir
+
+    fsync_dir(directory)
     return final
 
 

@@ -33,7 +33,7 @@ from segsnake import cancel
 from segsnake.errors import OutputError
 
 __all__ = ["JOURNAL", "STAGE_PREFIX", "LEGACY_STAGE_PREFIX", "OutputLock", "locked", "try_lock",
-           "recover", "stage_dir", "commit", "make_dirs", "remove_empty_dirs"]
+           "recover", "stage_dir", "commit", "fsync_dir", "make_dirs", "remove_empty_dirs"]
 
 JOURNAL = ".segsnake-journal.json"
 STAGE_PREFIX = ".segsnake-stage-"
@@ -207,9 +207,9 @@ def recover(out_dir: str) -> dict[str, list[str]]:
             if os.path.lexists(src):
                 os.replace(src, os.path.join(out_dir, os.path.basename(name)))
                 done["rolled_forward"].append(name)
-        _fsync_dir(out_dir)
+        fsync_dir(out_dir)
         os.unlink(journal)
-        _fsync_dir(out_dir)
+        fsync_dir(out_dir)
     try:
         entries = list(os.scandir(out_dir))
     except OSError:
@@ -238,7 +238,9 @@ def stage_dir(out_dir: str) -> str:
                           f"({exc.strerror or exc})") from None
 
 
-def _fsync_dir(path: str) -> None:
+def fsync_dir(path: str | os.PathLike[str]) -> None:
+    """Make the renames in directory ``path`` durable (errors ignored: not every filesystem
+    can)."""
     with contextlib.suppress(OSError):
         fd = os.open(path, os.O_RDONLY)
         try:
@@ -255,7 +257,7 @@ def _write_journal(out_dir: str, stage: str, names: tuple[str, ...]) -> str:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, journal)
-    _fsync_dir(out_dir)
+    fsync_dir(out_dir)
     return journal
 
 
@@ -314,8 +316,8 @@ def commit(stage: str, out_dir: str, overwrite: bool, names: tuple[str, ...], *,
             with contextlib.suppress(OSError):
                 os.unlink(journal)
             raise
-        _fsync_dir(out_dir)  # the renames are durable before the journal goes
+        fsync_dir(out_dir)  # the renames are durable before the journal goes
         os.unlink(journal)
-        _fsync_dir(out_dir)
+        fsync_dir(out_dir)
         if on_step is not None:
             on_step("done")

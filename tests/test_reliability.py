@@ -155,11 +155,44 @@ def test_a_second_run_on_a_locked_directory_is_refused_at_once(ball, tmp_path, c
 def test_wait_waits_for_the_other_run(ball, tmp_path, capsys):
     out = tmp_path / "out"
     lock = outdir._acquire(str(out), wait=False)
-    threading.Timer(1.0, lock.release).start()
+    threading.Timer(0.5, lock.release).start()
     t0 = time.monotonic()
     rc = main(["segment", str(ball), "--out", str(out), "--quiet", "--wait"])
-    assert rc == 0 and time.monotonic() - t0 >= 1.0, capsys.readouterr().err
+    assert rc == 0 and time.monotonic() - t0 >= 0.5, capsys.readouterr().err
     assert complete_set(out) and hidden(out) == []
+
+
+def _holds_flock(pid: int) -> bool:
+    """Whether process ``pid`` holds a flock (``/proc/locks``)."""
+    with open("/proc/locks", encoding="utf-8") as fh:
+        return any(ln.split()[1] == "FLOCK" and ln.split()[4] == str(pid) for ln in fh
+                   if len(ln.split()) > 4)
+
+
+@pytest.mark.parametrize("overwrite", [pytest.param(False, marks=pytest.mark.slow), True])
+def test_two_concurrent_runs_one_set_the_other_refused_before_it_computes(ball, tmp_path,
+                                                                          overwrite):
+    """Run A holds --out; run B on it is refused at once (exit 5), with or without --overwrite,
+    and A leaves its complete set."""
+    out = tmp_path / "out"
+    extra = ["--overwrite"] if overwrite else []
+    if overwrite:  # an earlier complete set, replaced by A
+        assert main(["segment", str(ball), "--out", str(out), "--quiet"]) == 0
+    a = subprocess.Popen([*SEGSNAKE, "segment", str(ball), "--out", str(out), "--quiet",
+                          "--m1", "8", "--m2", "8", *extra], stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 30
+    while not _holds_flock(a.pid):
+        assert a.poll() is None and time.monotonic() < deadline
+        time.sleep(0.01)
+    b = subprocess.run([*SEGSNAKE, "segment", str(ball), "--out", str(out), "--quiet", *extra],
+                       capture_output=True, text=True, timeout=60)
+    _, err_a = a.communicate(timeout=60)
+    assert a.returncode == 0, err_a
+    assert b.returncode == 5
+    one_line(b.stderr)
+    assert "another segsnake run is writing into this output directory" in b.stderr
+    assert complete_set(out) and hidden(out) == []
+    assert json.loads((out / "snake.json").read_text())["settings"]["m1"] == 8
 
 
 def _stage(out: Path, tag: bytes) -> Path:
@@ -283,15 +316,24 @@ def test_memory_limits_name_file_estimate_and_limit(tmp_path):
     with pytest.raises(InputError, match=r"big.nii: a 256x256x256 volume needs about 2.5 GB of "
                                          r"memory, more than the memory given \(1.0 GB\)"):
         check_memory((256, 256, 256), 160.0, what="big.nii", total_bytes=1 << 30)
-    # cgroup v2 and v1 limit files (the mount's root; "max" is no limit)
-    (tmp_path / "v2").mkdir()
-    (tmp_path / "v2" / "memory.max").write_text("3221225472\n")
-    assert _cgroup_limit_bytes(str(tmp_path / "v2")) == 3 << 30
-    (tmp_path / "v2" / "memory.max").write_text("max\n")
-    assert _cgroup_limit_bytes(str(tmp_path / "v2")) == 0
-    (tmp_path / "v1" / "memory").mkdir(parents=True)
-    (tmp_path / "v1" / "memory" / "memory.limit_in_bytes").write_text("1073741824\n")
-    assert _cgroup_limit_bytes(str(tmp_path / "v1")) == 1 << 30
+    # cgroup v2: the group's own limit, or a smaller one of an ancestor; "max" is no limit
+    v2 = tmp_path / "v2"
+    (v2 / "jobs" / "run1").mkdir(parents=True)
+    (tmp_path / "cg2").write_text("0::/jobs/run1\n")
+    (v2 / "jobs" / "run1" / "memory.max").write_text("3221225472\n")
+    assert _cgroup_limit_bytes(str(v2), str(tmp_path / "cg2")) == 3 << 30
+    (v2 / "jobs" / "memory.max").write_text("2147483648\n")
+    assert _cgroup_limit_bytes(str(v2), str(tmp_path / "cg2")) == 2 << 30
+    for f in (v2 / "jobs" / "memory.max", v2 / "jobs" / "run1" / "memory.max"):
+        f.write_text("max\n")
+    assert _cgroup_limit_bytes(str(v2), str(tmp_path / "cg2")) == 0
+    # cgroup v1: the memory controller's hierarchy; its "no limit" is a huge number
+    v1 = tmp_path / "v1" / "memory" / "grp"
+    v1.mkdir(parents=True)
+    (tmp_path / "cg1").write_text("4:memory:/grp\n1:cpu:/\n")
+    (v1 / "memory.limit_in_bytes").write_text("1073741824\n")
+    (v1.parent / "memory.limit_in_bytes").write_text("9223372036854771712\n")
+    assert _cgroup_limit_bytes(str(tmp_path / "v1"), str(tmp_path / "cg1")) == 1 << 30
 
 
 def test_ulimit_v_below_the_estimate_is_refused_up_front():
@@ -320,7 +362,7 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
 STARTUP_S = 0.15
 
 
-def _kill_segment(image: Path, out: Path, instant: float, sig: int, m1: int) -> None:
+def _kill_segment(image: Path, out: Path, instant: float, sig: int, m1: int) -> tuple[int, float]:
     """One ``segment`` killed at ``instant`` s: checks exit code, stderr, the set after recovery."""
     had_old = out.exists() and complete_set(out)
     old = snapshot(out) if had_old else None
@@ -348,24 +390,31 @@ def _kill_segment(image: Path, out: Path, instant: float, sig: int, m1: int) -> 
             assert proc.returncode in (0, 130, -signal.SIGKILL)  # the new set, complete
     else:
         assert old is None  # nothing was there: nothing (or an empty directory) is left
+    return proc.returncode, took
+
+
+def _summary(rows: list[tuple[int, float]]) -> str:
+    """Exit codes with their counts, and the largest signal-to-exit time of SIGINT/SIGTERM."""
+    codes = {c: sum(1 for r in rows if r[0] == c) for c in sorted({r[0] for r in rows})}
+    lat = [t for c, t in rows if c == 130]
+    return f"exit codes {codes}; SIGINT/SIGTERM to exit: max {max(lat, default=0):.3f} s"
 
 
 def _fault_injection_segment(tmp_path: Path, image: Path, count: int, seed: int,
-                             every_next_run: bool) -> list[float]:
+                             every_next_run: bool) -> list[tuple[int, float]]:
     rng = random.Random(seed)
     out = tmp_path / "seg"
-    instants = []
+    rows = []
     for i in range(count):
         instant = rng.uniform(STARTUP_S, 3.5)
-        instants.append(instant)
-        _kill_segment(image, out, instant, SIGNALS[i % 3], m1=8 + i % 2)
+        rows.append(_kill_segment(image, out, instant, SIGNALS[i % 3], m1=8 + i % 2))
         if every_next_run or i == count - 1:
             extra = ["--overwrite"] if out.exists() and complete_set(out) else []
             proc = subprocess.run([*SEGSNAKE, "segment", str(image), "--out", str(out),
                                    "--quiet", *extra], capture_output=True, text=True, timeout=60)
             assert proc.returncode == 0, proc.stderr
             assert complete_set(out) and hidden(out) == []
-    return instants
+    return rows
 
 
 def test_fault_injection_segment_quick(ball, tmp_path):
@@ -374,7 +423,8 @@ def test_fault_injection_segment_quick(ball, tmp_path):
 
 @pytest.mark.slow
 def test_fault_injection_segment_50(ball, tmp_path):
-    _fault_injection_segment(tmp_path, ball, count=50, seed=1818, every_next_run=True)
+    rows = _fault_injection_segment(tmp_path, ball, count=50, seed=1818, every_next_run=True)
+    print(f"\nsegment, 50 instants: {_summary(rows)}")
 
 
 def _batch(tmp_path: Path, n_cases: int) -> Path:
@@ -389,7 +439,8 @@ def _batch(tmp_path: Path, n_cases: int) -> Path:
     return path
 
 
-def _kill_batch(yaml: Path, out: Path, instant: float, sig: int, resume: bool) -> None:
+def _kill_batch(yaml: Path, out: Path, instant: float, sig: int, resume: bool
+                ) -> tuple[int, float]:
     args = [*SEGSNAKE, "batch", str(yaml), "--workers", "2", "--quiet"] + \
         (["--resume"] if resume else ["--overwrite"])
     # A new session: SIGINT goes to the whole group, as Ctrl-C in a terminal does.
@@ -412,6 +463,7 @@ def _kill_batch(yaml: Path, out: Path, instant: float, sig: int, resume: bool) -
         assert proc.returncode == 130 and err.strip() == "segsnake batch: interrupted", err
         assert took < 1.0, took
     time.sleep(0.3)  # the cases of a SIGKILLed batch end by themselves (their watchdog)
+    return proc.returncode, took
 
 
 def _check_batch_done(yaml: Path, out: Path, n_cases: int) -> None:
@@ -426,12 +478,14 @@ def _check_batch_done(yaml: Path, out: Path, n_cases: int) -> None:
 
 
 def _fault_injection_batch(tmp_path: Path, count: int, seed: int, every_next_run: bool,
-                           n_cases: int = 4) -> None:
+                           n_cases: int = 4) -> list[tuple[int, float]]:
     yaml = _batch(tmp_path, n_cases)
     out = tmp_path / "out"
     rng = random.Random(seed)
+    rows = []
     for i in range(count):
-        _kill_batch(yaml, out, rng.uniform(STARTUP_S, 6.0), SIGNALS[i % 3], resume=i % 2 == 1)
+        rows.append(_kill_batch(yaml, out, rng.uniform(STARTUP_S, 6.0), SIGNALS[i % 3],
+                                resume=i % 2 == 1))
         # Every case directory: a complete set or nothing, never an empty directory, once the
         # next run recovered it (the batch does that for every case before it runs any).
         if out.exists():
@@ -441,6 +495,7 @@ def _fault_injection_batch(tmp_path: Path, count: int, seed: int, every_next_run
                     assert complete_set(d) and hidden(d) == [], d
         if every_next_run or i == count - 1:
             _check_batch_done(yaml, out, n_cases)
+    return rows
 
 
 def test_fault_injection_batch_quick(tmp_path):
@@ -449,4 +504,5 @@ def test_fault_injection_batch_quick(tmp_path):
 
 @pytest.mark.slow
 def test_fault_injection_batch_50(tmp_path):
-    _fault_injection_batch(tmp_path, count=50, seed=1818, every_next_run=True)
+    rows = _fault_injection_batch(tmp_path, count=50, seed=1818, every_next_run=True)
+    print(f"\nbatch, 50 instants: {_summary(rows)}")
