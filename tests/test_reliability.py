@@ -404,9 +404,17 @@ def _fault_injection_segment(tmp_path: Path, image: Path, count: int, seed: int,
                              every_next_run: bool) -> list[tuple[int, float]]:
     rng = random.Random(seed)
     out = tmp_path / "seg"
+    # The instants cover one whole run (its length measured here, on this machine and load),
+    # and a little beyond: the commit is its last moment.
+    run_s = 2.0  # about a run of the quick test on the 2-core machine
+    if every_next_run:
+        t0 = time.monotonic()
+        subprocess.run([*SEGSNAKE, "segment", str(image), "--out", str(tmp_path / "timed"),
+                        "--quiet"], check=True, timeout=120)
+        run_s = time.monotonic() - t0
     rows = []
     for i in range(count):
-        instant = rng.uniform(STARTUP_S, 3.5)
+        instant = rng.uniform(STARTUP_S, 1.05 * run_s)
         rows.append(_kill_segment(image, out, instant, SIGNALS[i % 3], m1=8 + i % 2))
         if every_next_run or i == count - 1:
             extra = ["--overwrite"] if out.exists() and complete_set(out) else []
@@ -425,6 +433,7 @@ def test_fault_injection_segment_quick(ball, tmp_path):
 def test_fault_injection_segment_50(ball, tmp_path):
     rows = _fault_injection_segment(tmp_path, ball, count=50, seed=1818, every_next_run=True)
     print(f"\nsegment, 50 instants: {_summary(rows)}")
+    assert sum(1 for code, _ in rows if code != 0) >= 35  # most instants land inside the run
 
 
 def _batch(tmp_path: Path, n_cases: int) -> Path:
@@ -482,10 +491,19 @@ def _fault_injection_batch(tmp_path: Path, count: int, seed: int, every_next_run
     yaml = _batch(tmp_path, n_cases)
     out = tmp_path / "out"
     rng = random.Random(seed)
+    run_s = 4.0  # about a batch of the quick test
+    if every_next_run:  # a whole batch, to draw the instants over (and a little beyond)
+        t0 = time.monotonic()
+        subprocess.run([*SEGSNAKE, "batch", str(yaml), "--workers", "2", "--quiet"], check=True,
+                       timeout=300, capture_output=True)
+        run_s = time.monotonic() - t0
     rows = []
     for i in range(count):
-        rows.append(_kill_batch(yaml, out, rng.uniform(STARTUP_S, 6.0), SIGNALS[i % 3],
-                                resume=i % 2 == 1))
+        # --overwrite runs every case again; --resume continues the killed run (only when that
+        # was not completed by the check run).
+        resume = not every_next_run and i % 2 == 1
+        rows.append(_kill_batch(yaml, out, rng.uniform(STARTUP_S, 1.05 * run_s), SIGNALS[i % 3],
+                                resume=resume))
         # Every case directory: a complete set or nothing, never an empty directory, once the
         # next run recovered it (the batch does that for every case before it runs any).
         if out.exists():
@@ -506,3 +524,4 @@ def test_fault_injection_batch_quick(tmp_path):
 def test_fault_injection_batch_50(tmp_path):
     rows = _fault_injection_batch(tmp_path, count=50, seed=1818, every_next_run=True)
     print(f"\nbatch, 50 instants: {_summary(rows)}")
+    assert sum(1 for code, _ in rows if code != 0) >= 35
