@@ -49,7 +49,7 @@ def kill_at(args: list[str], instant: float, sig: int) -> dict:
 
 def latency(work: Path, image: Path, scale: float | None, instants: int, seed: int) -> dict:
     base = [str(image), "--quiet", "--overwrite"] + (["--scale", f"{scale:g}"] if scale else [])
-    code, err, full = run(base[:1] + ["--out", str(work / "full")] + base[1:])
+    code, err, full = run(["segment", *base[:1], "--out", str(work / "full"), *base[1:]])
     assert code == 0, err
     rng = random.Random(seed)
     rows = []
