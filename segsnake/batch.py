@@ -74,7 +74,9 @@ from segsnake.config import (
     resolve_config_paths,
     suggest,
 )
+from segsnake import cancel
 from segsnake.errors import ConfigError, InputError, OutputError, SegsnakeError
+from segsnake.outdir import fsync_dir, make_dirs, recover, remove_empty_dirs, try_lock
 from segsnake.jsonable import jsonable as _jsonable
 from segsnake.parallel import set_threads, threads as parallel_threads
 
@@ -86,6 +88,7 @@ __all__ = [
     "run_batch",
     "run_case",
     "execute_case",
+    "tidy_case_dirs",
     "read_results",
     "RESULT_COLUMNS",
     "DEFAULT_RUNNER",
@@ -530,6 +533,7 @@ def execute_case(runner: str, case: dict[str, Any], sys_path: list[str] | None =
     parent's ``sys.path`` (appended where missing so a runner found by the parent is found here).
     """
     start = time.perf_counter()
+    created: list[str] = []
     try:
         if sys_path:
             for entry in sys_path:
@@ -543,10 +547,10 @@ def execute_case(runner: str, case: dict[str, Any], sys_path: list[str] | None =
                 raise InputError(f"{path}: {role} file not found")
         if case.get("out_dir"):
             try:
-                os.makedirs(case["out_dir"], exist_ok=True)
-            except OSError as exc:
+                created = make_dirs(case["out_dir"])
+            except OutputError as exc:
                 raise OutputError(f"{case['out_dir']}: cannot create the case directory: "
-                                  f"{exc.strerror or exc}") from None
+                                  f"{str(exc).split(': ', 1)[-1]}") from None
         func = resolve_runner(runner)
         summary = func(case)
         return _ok_record(case, summary, time.perf_counter() - start)
@@ -554,6 +558,9 @@ def execute_case(runner: str, case: dict[str, Any], sys_path: list[str] | None =
         if isinstance(exc, SystemExit):
             exc = RuntimeError(f"the case called exit({exc.code})")
         return failure_record(case, exc, time_s=time.perf_counter() - start)
+    finally:
+        # A failed (or interrupted) case leaves no empty case directory behind.
+        remove_empty_dirs(created)
 
 
 def _die_with_batch(alive: multiprocessing.connection.Connection) -> None:
@@ -583,7 +590,13 @@ def _child_main(runner: str, case: dict[str, Any], sys_path: list[str],
     """Entry point of the one process that runs one case (with ``threads`` threads)."""
     _die_with_batch(alive)
     set_threads(threads)
-    record = execute_case(runner, case, sys_path)
+    # Ctrl-C in a terminal reaches every process of the group: the case unwinds (its staging
+    # files removed) and ends with 130 in silence; the batch reports the interruption once.
+    cancel.install()
+    try:
+        record = execute_case(runner, case, sys_path)
+    except KeyboardInterrupt:
+        cancel.exit_now(cancel.EXIT_INTERRUPTED)
     with contextlib.suppress(Exception):
         conn.send(record)
     with contextlib.suppress(Exception):
@@ -630,15 +643,6 @@ def _csv_row(record: dict[str, Any]) -> list[str]:
     return row
 
 
-def _fsync_dir(path: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 def _write_atomic(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -651,7 +655,7 @@ def _write_atomic(path: Path, text: str) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 class ResultsWriter:
@@ -687,7 +691,7 @@ class ResultsWriter:
         if self._cfh.tell() == 0:
             csv.writer(self._cfh, lineterminator="\n").writerow(RESULT_COLUMNS)
             self._sync(self._cfh)
-        _fsync_dir(self.dir)
+        fsync_dir(self.dir)
 
     @staticmethod
     def _sync(fh: io.TextIOWrapper) -> None:
@@ -764,6 +768,22 @@ def _mp_context(runner: str) -> mp.context.BaseContext:
             pass
     # Only effective before the server first starts (it is one per parent process).
     ctx.set_forkserver_preload(preload)
+    # The server (and the resource tracker) ignore SIGINT only once they have imported: a Ctrl-C
+    # to the process group before would print their traceback. So they start with SIGINT ignored
+    # (an ignored signal stays ignored through fork and exec; the cases the server forks install
+    # their own handlers in _child_main). Meanwhile SIGINT is also blocked here, so that a Ctrl-C
+    # in that moment stays pending (Linux never discards a blocked signal) and reaches this
+    # process once its handler is back.
+    if threading.current_thread() is threading.main_thread():
+        from multiprocessing import forkserver
+
+        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        old_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            forkserver.ensure_running()
+        finally:
+            signal.signal(signal.SIGINT, old_handler)
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
     return ctx
 
 
@@ -788,6 +808,27 @@ def _describe_exit(code: int | None) -> str:
         hint = " (out of memory?)" if -code == signal.SIGKILL else ""
         return f"was killed by {name}{hint}"
     return f"exited with code {code}"
+
+
+# Seconds the running cases get to unwind after the batch is interrupted, before SIGKILL: within
+# the grace of segsnake.cancel, so that the batch itself still ends within it.
+_STOP_S = 0.4
+
+
+def _stop(running: list["_Running"]) -> None:
+    """End the running case processes: SIGTERM, up to :data:`_STOP_S` s, then SIGKILL."""
+    for r in running:
+        with contextlib.suppress(Exception):
+            r.proc.terminate()
+    deadline = time.monotonic() + _STOP_S
+    for r in running:
+        with contextlib.suppress(Exception):
+            r.proc.join(max(0.0, deadline - time.monotonic()))
+    for r in running:
+        with contextlib.suppress(Exception):
+            if r.proc.is_alive():
+                r.proc.kill()
+                r.proc.join(5)
 
 
 def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: float | None,
@@ -860,11 +901,9 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
                 on_record(r.record)
             running = still
     finally:
-        # Interrupted (Ctrl-C) or failing to write results: take the running cases down with us.
-        for r in running:
-            with contextlib.suppress(Exception):
-                r.proc.kill()
-                r.proc.join(5)
+        # Interrupted (Ctrl-C) or failing to write results: take the running cases down with us,
+        # first asking them (SIGTERM: each removes its staging files), then by force.
+        _stop(running)
         alive_r.close()
         alive_w.close()
 
@@ -945,6 +984,24 @@ def _previous(records: list[dict[str, Any]], names: set[str]) -> tuple[list[dict
             keep[name] = last_any[name]  # a case no longer in the file: keep its record, untouched
     done = {n for n in last_ok if n in names}
     return list(keep.values()), done
+
+
+def tidy_case_dirs(out: str | os.PathLike[str], names: Iterable[str]) -> None:
+    """What killed runs left in the case directories ``out/NAME``: commits completed or undone
+    and staging directories removed (:func:`segsnake.outdir.recover`), empty case directories
+    removed. A directory another process holds (a segment run on it) is left alone."""
+    for name in names:
+        d = Path(out) / name
+        if not d.is_dir():
+            continue
+        lock = try_lock(str(d))
+        if lock is None:
+            continue
+        try:
+            recover(str(d))
+            lock.created = [str(d)]
+        finally:
+            lock.release(remove_if_empty=True)
 
 
 def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None = None,
@@ -1031,6 +1088,7 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
         else:
             writer.reset([])
 
+        tidy_case_dirs(out, [c.name for c in spec.cases])
         todo = [c for c in spec.cases if c.name not in done]
         # Re-run cases may have complete outputs from a run killed before it recorded them.
         jobs = [c.to_job(out, overwrite=overwrite or resume) for c in todo]

@@ -18,7 +18,7 @@ import sys
 import threading
 from typing import Any, Sequence
 
-from segsnake import __version__
+from segsnake import __version__, cancel
 from segsnake.errors import SegsnakeError
 
 DESCRIPTION = ("Segment 3D structures in medical volumes with smooth spline snakes "
@@ -31,7 +31,7 @@ COMMANDS = ("segment", "demo", "phantom", "evaluate", "batch", "shape", "shape-m
 # Exit codes decided here rather than by an error class (the README's table lists every code).
 EXIT_UNEXPECTED = 1
 EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
+EXIT_INTERRUPTED = cancel.EXIT_INTERRUPTED
 # A reader that closed our stdout (``segsnake evaluate ... | head -1``): the code of a tool that
 # the shell saw die of SIGPIPE, as ``seq``, ``cat`` or ``git`` do in the same place.
 EXIT_CLOSED_PIPE = 128 + signal.SIGPIPE
@@ -75,12 +75,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _terminate(signum: int, frame: object) -> None:
-    # A SIGTERM (a scheduler's kill, a timeout) unwinds like Ctrl-C, so the cleanup of partial
-    # outputs runs instead of leaving a staging directory behind.
-    raise KeyboardInterrupt
-
-
 def _mute_output() -> None:
     """Point stdout and stderr at /dev/null: their reader is gone, and the interpreter's final
     flush must not fail again (Python would print 'Exception ignored ... BrokenPipeError')."""
@@ -119,8 +113,23 @@ def _report(command: str | None, want_json: bool, code: int, message: str,
     return code
 
 
+_reported = threading.Lock()
+
+
+def _report_interrupted(state: dict[str, Any]) -> int:
+    """The "interrupted" line, once (the main thread and the watchdog of :mod:`segsnake.cancel`
+    may both get here); returns 130."""
+    if _reported.acquire(blocking=False):
+        try:
+            _report(state["command"], state["json"], EXIT_INTERRUPTED, "interrupted", verb="")
+        finally:
+            state["reported"] = True
+    return EXIT_INTERRUPTED
+
+
 def main(argv: Sequence[str] | None = None, *,
-         parser: argparse.ArgumentParser | None = None) -> int:
+         parser: argparse.ArgumentParser | None = None,
+         exit_process: bool | None = None) -> int:
     """Run ``segsnake ARGV`` and return its exit code (README, "Exit codes and errors").
 
     Parameters
@@ -130,15 +139,43 @@ def main(argv: Sequence[str] | None = None, *,
     parser : argparse.ArgumentParser, optional
         Another parser (default :func:`build_parser`): its sub-commands set ``func``, ``command``
         and ``debug`` as the real ones do (tests give one whose command misbehaves).
+    exit_process : bool, optional
+        End the process with the exit code (``os._exit`` after flushing) instead of returning,
+        and let a watchdog end it (exit 130) when the main thread has not finished within
+        :data:`segsnake.cancel.GRACE_S` of a Ctrl-C or SIGTERM. The interpreter's shutdown
+        would wait for pool threads still inside a C call, and it resets the signal handlers,
+        so that a signal during it would end the process with the signal's own status (default:
+        when ``argv`` is None, i.e. when this is the ``segsnake`` program).
 
     Returns
     -------
     int
         The exit code.
     """
+    if exit_process is None:
+        exit_process = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     # Known before parsing, so that a command line argparse refuses is reported in JSON too.
     state: dict[str, Any] = {"command": None, "json": "--json" in argv, "debug": False}
+    if _reported.locked():  # an earlier main() in this process (tests) reported its interrupt
+        _reported.release()
+    try:
+        code = _main(argv, parser, state, exit_process)
+        if exit_process:
+            cancel.exit_now(code)
+    except KeyboardInterrupt:  # also one that arrived while an error was being reported
+        code = _report_interrupted(state)
+        if exit_process:
+            cancel.exit_now(code)
+    return code
+
+
+def _main(argv: list[str], parser: argparse.ArgumentParser | None, state: dict[str, Any],
+          exit_process: bool) -> int:
+    # First, before the imports of the commands: a SIGTERM (a scheduler's kill, a timeout) ends a
+    # run like Ctrl-C, the cleanup of partial outputs runs instead of leaving a staging directory.
+    cancel.install(grace=cancel.GRACE_S if exit_process else None,
+                   on_exit=lambda: _report_interrupted(state))
     try:
         if parser is None:
             parser = build_parser()
@@ -149,9 +186,8 @@ def main(argv: Sequence[str] | None = None, *,
             raise
         state.update(command=args.command, json=bool(getattr(args, "json", False)),
                      debug=args.debug)
-        if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, _terminate)
         code = int(args.func(args) or 0)
+        cancel.check()  # an interrupt a library destructor swallowed still ends the run as one
         sys.stdout.flush()  # here, where a closed pipe can still be handled
         return code
     except BrokenPipeError:
@@ -166,7 +202,7 @@ def main(argv: Sequence[str] | None = None, *,
             raise
         return _report(state["command"], state["json"], exc.exit_code, str(exc), exc)
     except KeyboardInterrupt:
-        return _report(state["command"], state["json"], EXIT_INTERRUPTED, "interrupted", verb="")
+        return _report_interrupted(state)
     except MemoryError as exc:
         if state["debug"]:
             raise

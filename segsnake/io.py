@@ -48,12 +48,18 @@ __all__ = [
     "check_memory",
     "check_not_input",
     "total_memory_bytes",
+    "memory_limit_bytes",
     "PIPELINE_BYTES_PER_VOXEL",
 ]
 
 # Peak bytes per voxel of load + edge map + lookup, measured by
 # benchmarks/bench_features.py (about 92 at 181 x 217 x 181) with a margin for the snake.
 PIPELINE_BYTES_PER_VOXEL = 160.0
+
+# Address space a run takes beyond its arrays after the memory check: libraries loaded later
+# (VTK, SimpleITK's writers), thread stacks and per-thread malloc arenas. Measured: 461 MB from the
+# check to the peak (VmPeak) of a 64^3 run with 2 threads; counted only against ulimit -v.
+ADDRESS_SPACE_OVERHEAD = 512 * 1024 * 1024
 
 _NIFTI_SUFFIXES = (".nii", ".nii.gz", ".hdr", ".img", ".hdr.gz", ".img.gz")
 _LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
@@ -129,12 +135,95 @@ def total_memory_bytes() -> int:
         return 0
 
 
-def _fmt_bytes(n: float) -> str:
+def fmt_bytes(n: float) -> str:
     for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
         if n < 1024 or unit == "PB":
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024.0
     return f"{n:.1f} PB"  # pragma: no cover
+
+
+def _read_limit(directory: str) -> int | None:
+    """The memory limit file of one cgroup directory: bytes, 0 for none, None if absent."""
+    for name in ("memory.max", "memory.limit_in_bytes"):
+        try:
+            with open(os.path.join(directory, name), encoding="utf-8") as fh:
+                text = fh.read().strip()
+        except OSError:
+            continue
+        if text == "max":
+            return 0
+        try:
+            value = int(text)
+        except ValueError:
+            continue
+        # cgroup v1 writes "no limit" as a huge number (PAGE_COUNTER_MAX pages).
+        return value if 0 < value < 1 << 60 else 0
+    return None
+
+
+def _cgroup_limit_bytes(root: str = "/sys/fs/cgroup", membership: str = "/proc/self/cgroup"
+                        ) -> int:
+    """The memory limit of this process's cgroup, 0 if none: the smallest v2 ``memory.max`` or
+    v1 ``memory.limit_in_bytes`` of its group (``membership`` names it) and the group's
+    ancestors up to ``root`` (v2) or ``root/memory`` (v1), a parent's limit bounding its
+    children."""
+    groups = []
+    try:
+        with open(membership, encoding="utf-8") as fh:
+            for line in fh:
+                parts = line.strip().split(":", 2)
+                if len(parts) == 3 and parts[1] == "":
+                    groups.append((root, parts[2]))
+                elif len(parts) == 3 and "memory" in parts[1].split(","):
+                    groups.append((os.path.join(root, "memory"), parts[2]))
+    except OSError:
+        pass
+    groups += [(root, "/"), (os.path.join(root, "memory"), "/")]
+    limits = []
+    for mount, rel in groups:
+        d = os.path.normpath(os.path.join(mount, rel.lstrip("/")))
+        while True:  # the group, then each ancestor up to the mount (inside a container's view)
+            value = _read_limit(d) if os.path.isdir(d) else None
+            if value:
+                limits.append(value)
+            if d == os.path.normpath(mount) or len(d) <= len(os.path.normpath(mount)):
+                break
+            d = os.path.dirname(d)
+    return min(limits) if limits else 0
+
+
+def _address_space_left() -> int:
+    """``ulimit -v`` (RLIMIT_AS) minus the address space this process uses already and
+    :data:`ADDRESS_SPACE_OVERHEAD`, 0 if no limit."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    except (ImportError, OSError, ValueError):  # pragma: no cover - not POSIX
+        return 0
+    if soft == resource.RLIM_INFINITY or soft <= 0:
+        return 0
+    used = 0
+    try:
+        with open("/proc/self/status", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("VmSize:"):
+                    used = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(int(soft) - used - ADDRESS_SPACE_OVERHEAD, 1)
+
+
+def memory_limit_bytes() -> tuple[int, str]:
+    """The memory this process may use and what sets it: the smallest of physical memory,
+    ``ulimit -v`` (what is left of RLIMIT_AS) and the cgroup's limit; ``(0, "")`` if unknown."""
+    limits = [(total_memory_bytes(), "this machine's memory"),
+              (_address_space_left(), "the address space left under ulimit -v"),
+              (_cgroup_limit_bytes(), "the cgroup's memory limit")]
+    known = [(n, what) for n, what in limits if n > 0]
+    return min(known) if known else (0, "")
 
 
 def check_memory(
@@ -144,7 +233,7 @@ def check_memory(
     what: str = "volume",
     total_bytes: int | None = None,
 ) -> int:
-    """Estimate the memory a volume needs and refuse it if the machine has less.
+    """Estimate the memory a volume needs and refuse it if this process may use less.
 
     Parameters
     ----------
@@ -155,7 +244,8 @@ def check_memory(
     what : str
         Name used in the message (the file name).
     total_bytes : int, optional
-        Memory to compare with (default: physical memory, ``os.sysconf``).
+        Memory to compare with (default: :func:`memory_limit_bytes`, the smallest of physical
+        memory, ``ulimit -v`` and the cgroup's limit).
 
     Returns
     -------
@@ -165,18 +255,22 @@ def check_memory(
     Raises
     ------
     InputError
-        With the estimate and the advice to crop or resample the image.
+        Naming the file, the estimate, the limit and what sets it, with the advice to crop or
+        resample the image.
     """
     nvox = 1
     for s in shape:
         nvox *= max(int(s), 0)
     estimate = int(nvox * float(bytes_per_voxel))
-    total = total_memory_bytes() if total_bytes is None else int(total_bytes)
+    if total_bytes is None:
+        total, source = memory_limit_bytes()
+    else:
+        total, source = int(total_bytes), "the memory given"
     if total > 0 and estimate > total:
         dims = "x".join(str(int(s)) for s in shape)
         raise InputError(
-            f"{what}: a {dims} volume needs about {_fmt_bytes(estimate)} of memory, "
-            f"more than this machine's {_fmt_bytes(total)}; "
+            f"{what}: a {dims} volume needs about {fmt_bytes(estimate)} of memory, "
+            f"more than {source} ({fmt_bytes(total)}); "
             "crop the image to the structure or resample it to larger voxels first"
         )
     return estimate
@@ -414,6 +508,13 @@ def _load_nibabel(path: str, volume_index: int | None, nan: str, bpv: float | No
         try:
             img = nib.load(path)
         except (ImageFileError, HeaderDataError) as exc:
+            code = _nifti_datatype(path) if "data code" in str(exc) else None
+            if code is not None:
+                what = _NIFTI_DATATYPES.get(code, "an unknown type")
+                raise InputError(
+                    f"{path}: NIfTI datatype {code} ({what}) cannot be read; save the image as "
+                    f"uint8, int16 or float32 (datatype 2, 4 or 16), e.g. fslmaths {path} "
+                    f"OUT.nii.gz -odt char, or nibabel/SimpleITK with that type") from None
             raise InputError(f"{path}: not a NIfTI/Analyze image ({_one_line(exc)})") from None
         if not isinstance(img, nib.spatialimages.SpatialImage):
             raise InputError(f"{path}: not a volume image")
@@ -440,6 +541,73 @@ def _load_nibabel(path: str, volume_index: int | None, nan: str, bpv: float | No
         data=data, spacing=spacing, affine=affine, path=path, header=header.copy(),
         warnings=notes, source_shape=full, volume_index=vidx,
     )
+
+
+# NIfTI datatype codes nibabel cannot read, named for the message (nifti1.h).
+_NIFTI_DATATYPES = {1: "1 bit per voxel", 32: "complex64", 128: "RGB24", 1792: "complex128",
+                    2048: "complex256", 2304: "RGBA32"}
+
+
+def _nifti_datatype(path: str) -> int | None:
+    """The ``datatype`` field of a NIfTI-1 header (bytes 70-71, either byte order), or None."""
+    try:
+        opener = gzip.open if path.lower().endswith(".gz") else open
+        with opener(path, "rb") as fh:
+            head = fh.read(348)
+    except (OSError, EOFError, zlib.error):
+        return None
+    if len(head) < 72:
+        return None
+    for order in ("<", ">"):
+        if int(np.frombuffer(head[:4], dtype=order + "i4")[0]) == 348:
+            return int(np.frombuffer(head[70:72], dtype=order + "i2")[0])
+    return None
+
+
+def _meta_data_problem(path: str, shape: tuple[int, ...], ncomp: int) -> str | None:
+    """What is wrong with the data file of a MetaImage header (``.mhd``), or None.
+
+    ITK reports a missing *or short* data file as "No such file or directory" on the header;
+    this names the data file and says which it is.
+    """
+    try:
+        with open(path, "rb") as fh:
+            text = fh.read(65536).decode("latin-1")
+    except OSError:
+        return None
+    fields = {}
+    for line in text.splitlines():
+        key, sep, value = line.partition("=")
+        if sep:
+            fields[key.strip()] = value.strip()
+    name = fields.get("ElementDataFile")
+    if not name or name.upper() in ("LOCAL", "LIST") or "%" in name:
+        return None
+    data = name if os.path.isabs(name) else os.path.join(os.path.dirname(path), name)
+    if not os.path.exists(data):
+        return (f"its data file {data} (ElementDataFile) does not exist; copy it next to the "
+                f"header or correct ElementDataFile")
+    if fields.get("CompressedData", "False").lower() == "true":
+        return None
+    sizes = {"MET_UCHAR": 1, "MET_CHAR": 1, "MET_USHORT": 2, "MET_SHORT": 2, "MET_UINT": 4,
+             "MET_INT": 4, "MET_ULONG": 8, "MET_LONG": 8, "MET_ULONG_LONG": 8,
+             "MET_LONG_LONG": 8, "MET_FLOAT": 4, "MET_DOUBLE": 8}
+    per = sizes.get(fields.get("ElementType", ""))
+    if per is None:
+        return None
+    need = per * max(ncomp, 1)
+    for n in shape:
+        need *= int(n)
+    try:
+        header = max(int(fields.get("HeaderSize", "0")), 0)
+    except ValueError:
+        header = 0
+    have = os.path.getsize(data)
+    if have < need + header:
+        return (f"its data file {data} holds {have} bytes but the header needs {need + header} "
+                f"({'x'.join(str(int(n)) for n in shape)} voxels of {fields['ElementType']}): the "
+                f"data file is truncated (copy it again)")
+    return None
 
 
 def _check_raw_pixdim(path: str, img) -> None:
@@ -516,6 +684,10 @@ def _load_sitk(path: str, volume_index: int | None, nan: str, bpv: float | None)
         with _quiet_stderr():
             image = reader.Execute()
     except RuntimeError as exc:  # the header was readable, the data are not
+        problem = _meta_data_problem(path, size, ncomp) if path.lower().endswith(".mhd") \
+            else None
+        if problem is not None:
+            raise InputError(f"{path}: {problem}") from None
         raise InputError(f"{path}: truncated or corrupt image data ({_one_line(exc)})") from None
     return sitk_volume(path, image, affine, spacing, shape3, ncomp, vidx, nan)
 
@@ -675,12 +847,9 @@ def atomic_write(
     except BaseException:
         _remove(tmp)
         raise
-    with contextlib.suppress(OSError):
-        dfd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+    from segsnake.outdir import fsync_dir
+
+    fsync_dir(directory)
     return final
 
 

@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
+from segsnake import cancel
 from segsnake.energy import Energy
 from segsnake.errors import SegmentationError
 from segsnake.surfaces import SplineSurface
@@ -120,6 +121,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     converged, message, it = False, f"iteration cap ({max_iter}) reached", 0
     steps: list[float] = []
     for it in range(1, max_iter + 1):
+        cancel.check()  # a signal stops the run between iterations (segsnake.cancel)
         d = -_two_loop(g, s_list, y_list, precondition)
         slope = float(np.sum(g * d))
         if slope >= 0:  # not a descent direction: restart from (preconditioned) steepest descent

@@ -19,6 +19,7 @@ from typing import Callable, Iterable, Sequence, TypeVar
 
 import numpy as np
 
+from segsnake import cancel
 from segsnake.errors import ConfigError
 
 __all__ = ["threads", "set_threads", "thread_map", "pieces", "slabs", "gaussian_filter",
@@ -70,14 +71,36 @@ def set_threads(n: int | None) -> None:
 def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
     """``[fn(x) for x in items]``, in up to :func:`threads` threads, in order.
 
-    Runs in the calling thread when one thread is configured or there is only one item, and
-    when called from inside a pool thread (nested calls would wait on their own pool).
+    Cancellation (:mod:`segsnake.cancel`) is checked before each item, so a Ctrl-C or SIGTERM
+    stops the remaining pieces of every thread. Called from the main thread, the work always runs
+    in the pool (with one thread too) while the main thread waits in an interruptible wait: a
+    signal then reaches it at once even while a piece is inside a long C call. Called from a pool
+    thread (nested calls would wait on their own pool) or another thread, with one thread or one
+    item, it runs in the calling thread.
     """
     items = list(items)
     n = threads()
-    if min(n, len(items)) <= 1 or threading.current_thread().name.startswith("segsnake-worker"):
-        return [fn(x) for x in items]
-    return list(_executor(n).map(fn, items))
+    current = threading.current_thread()
+    if current.name.startswith("segsnake-worker") or (
+            min(n, len(items)) <= 1 and current is not threading.main_thread()):
+        out = []
+        for x in items:
+            cancel.check()
+            out.append(fn(x))
+        return out
+    if not items:
+        return []
+
+    def run(x: T) -> R:
+        cancel.check()
+        return fn(x)
+
+    futures = [_executor(n).submit(run, x) for x in items]
+    try:
+        return [f.result() for f in futures]
+    finally:
+        for f in futures:  # after an error or an interrupt: the pieces not started never start
+            f.cancel()
 
 
 def _forget_pool() -> None:

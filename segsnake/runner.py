@@ -18,26 +18,29 @@ cylinder.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
-import tempfile
 import time
 from typing import Any, Callable
 
 import numpy as np
 
-from segsnake import __version__
+from segsnake import __version__, outdir
 from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
 from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
 from segsnake.qc import click_index, write_qc_picture
 from segsnake.saved_snake import image_from_world, load_snake
 
-__all__ = ["OUTPUT_NAMES", "output_names", "segment_file", "render_file"]
+__all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes", "segment_file",
+           "render_file"]
 
 OUTPUT_NAMES = ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png")
+# The largest --scale, as a fraction of the image's longest extent in mm: the Gaussian filters then
+# stay within a few times the volume (bounded time), and a scale near the whole image is
+# already far outside any sensible use (the detector's scale is about a boundary's thickness).
+MAX_SCALE_FRACTION = 0.25
 COORDINATES = ("model control points in mm of scaled index space (i*sx, j*sy, k*sz); surface.vtp "
                "in world coordinates (the image affine)")
 
@@ -81,12 +84,17 @@ def _check_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None],
     from segsnake.io import check_not_input
 
     if os.path.lexists(out_dir) and not os.path.isdir(out_dir):
-        raise OutputError(f"{out_dir}: exists and is not a directory")
+        for given in inputs:
+            if given is not None and os.path.lexists(given) and os.path.samefile(given, out_dir):
+                raise OutputError(f"{out_dir}: --out is the input file itself; --out takes a "
+                                  f"directory for the outputs (a new one is created), e.g. "
+                                  f"--out {_suggest_dir(out_dir)}")
+        raise OutputError(f"{out_dir}: exists and is a file, not a directory; --out takes a "
+                          f"directory for the outputs: give another name")
     for name in names:
         path = os.path.join(out_dir, name)
         check_not_input(path, *inputs)
-        if os.path.lexists(path) and not overwrite:
-            raise OutputError(f"{path}: already exists; use --overwrite to replace it")
+    _check_existing(out_dir, overwrite, names)
     base = _existing_ancestor(out_dir)
     if not os.path.isdir(base):
         raise OutputError(f"{out_dir}: cannot create the output directory ({base} is not a directory)")
@@ -96,6 +104,58 @@ def _check_out_dir(out_dir: str, overwrite: bool, inputs: list[str | None],
         what = "output directory is not writable" if base == os.path.abspath(out_dir) else \
             f"cannot create the output directory ({base} is not writable)"
         raise OutputError(f"{out_dir}: {what}")
+
+
+def _suggest_dir(path: str) -> str:
+    """``scan.nii.gz`` -> ``scan-seg``: a directory name next to an input file."""
+    base = os.path.basename(path)
+    for ext in (".nii.gz", ".nii", ".mhd", ".mha", ".nrrd", ".nhdr"):
+        if base.lower().endswith(ext):
+            base = base[: -len(ext)]
+            break
+    return os.path.join(os.path.dirname(path), (base or "out") + "-seg")
+
+
+def _check_existing(out_dir: str, overwrite: bool, names: tuple[str, ...]) -> None:
+    """Refuse outputs that exist already, unless ``overwrite``."""
+    if overwrite:
+        return
+    for name in names:
+        path = os.path.join(out_dir, name)
+        if os.path.lexists(path):
+            raise OutputError(f"{path}: already exists; use --overwrite to replace it")
+
+
+def check_sizes(config, volume) -> None:
+    """Refuse size-like options that do not fit the image (exit 2): ``scale`` larger than
+    :data:`MAX_SCALE_FRACTION` of the image's longest extent (the filters' cost grows with it,
+    and a detector wider than the image finds nothing), and ``radii``/``radius`` larger than the
+    image's longest extent.
+
+    Raises
+    ------
+    ConfigError
+        An option out of its bound; the message names the image, the bound and the extent.
+    """
+    sp = np.asarray(volume.spacing, dtype=float)
+    extent_mm = float(np.max(np.asarray(volume.shape) * sp))
+    if config.scale is not None:
+        limit = MAX_SCALE_FRACTION * extent_mm
+        if config.scale > limit:
+            raise ConfigError(f"{volume.path}: --scale {config.scale:g} mm is larger than the image "
+                              f"allows ({limit:g} mm, {MAX_SCALE_FRACTION:g} x its longest extent "
+                              f"of {extent_mm:g} mm); use --scale {limit:g} or less (about the "
+                              f"thickness of the boundary you segment)")
+    # radii/radius are voxels, or mm with world: compare with the extent in the same unit.
+    extent = extent_mm if config.world else float(np.max(volume.shape))
+    unit = "mm" if config.world else "voxels"
+    lengths = [("--radii", r) for r in (config.radii or [])]
+    if config.radius is not None:
+        lengths.append(("--radius", config.radius))
+    for flag, value in lengths:
+        if value > extent:
+            raise ConfigError(f"{volume.path}: {flag} {value:g} {unit} is larger than the image "
+                              f"(longest extent {extent:g} {unit}); give a size inside the image")
 
 
 def _with_image_name(exc: Exception, image_path: str) -> None:
@@ -111,9 +171,13 @@ def _with_image_name(exc: Exception, image_path: str) -> None:
 
 def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | None = None,
                  truth_label: int | None = None, truth_label_option: str = "a truth label",
-                 overwrite: bool = False,
+                 overwrite: bool = False, wait: bool = False,
                  progress: Callable[[str, float], None] | None = None) -> dict[str, Any]:
     """Segment ``image_path`` with ``config`` and write the outputs into ``out_dir``.
+
+    The output directory is locked before any work (:func:`segsnake.outdir.locked`): what a
+    killed run left there is completed or removed first, and a second run on the same directory
+    is refused at once (or waits, ``wait``).
 
     Parameters
     ----------
@@ -132,6 +196,8 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         How the caller's user gives ``truth_label`` (a flag, a YAML key), named by that warning.
     overwrite : bool
         Replace existing outputs.
+    wait : bool
+        Wait for another run holding the output directory instead of refusing (exit 5).
     progress : callable(stage, fraction), optional
 
     Returns
@@ -151,21 +217,31 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
         Existing outputs without ``overwrite``, an output that is an input, an unwritable
         directory or a failed write (exit 5); earlier outputs are left as they were.
     """
-    from segsnake.io import load_volume
-    from segsnake.measure import closed_area
-    from segsnake.metrics import evaluate_masks
-    from segsnake.pipeline import segment_volume
-
     t_start = time.perf_counter()
     image_path = os.fspath(image_path)
     out_dir = os.fspath(out_dir)
     truth_path = None if truth_path is None else os.fspath(truth_path)
     names = output_names(config)
     _check_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior, config.init], names)
+    with outdir.locked(out_dir, wait=wait):
+        _check_existing(out_dir, overwrite, names)  # again: a run that held the lock wrote them?
+        return _segment_locked(image_path, out_dir, config, truth_path, truth_label,
+                               truth_label_option, overwrite, progress, names, t_start)
+
+
+def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_label_option,
+                    overwrite, progress, names, t_start) -> dict[str, Any]:
+    """:func:`segment_file` once the output directory is locked."""
+    from segsnake.io import load_volume
+    from segsnake.measure import closed_area
+    from segsnake.metrics import evaluate_masks
+    from segsnake.pipeline import segment_volume
+
     t0 = time.perf_counter()
     # A bad --init file is refused before the image is read.
     saved = load_snake(config.init) if config.init is not None else None
     volume = load_volume(image_path, volume_index=config.volume, nan=config.nan)
+    check_sizes(config, volume)
     truth = None
     truth_warnings: list[str] = []
     if truth_path is not None:
@@ -187,6 +263,16 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     except (ConfigError, SegmentationError) as exc:
         _with_image_name(exc, image_path)
         raise
+    except MemoryError:
+        from segsnake.io import PIPELINE_BYTES_PER_VOXEL, fmt_bytes, memory_limit_bytes
+
+        limit, source = memory_limit_bytes()
+        need = float(np.prod(volume.shape)) * PIPELINE_BYTES_PER_VOXEL
+        raise InputError(f"{image_path}: out of memory while segmenting its "
+                         f"{'x'.join(map(str, volume.shape))} voxels (estimate "
+                         f"{fmt_bytes(need)}, {source or 'the limit'} {fmt_bytes(limit)}); "
+                         f"crop the image to the structure or resample it to larger voxels "
+                         f"first") from None
     timings = {"load_s": load_s, **result.timings}
     summary: dict[str, Any] = {
         "image": os.path.abspath(image_path),
@@ -257,7 +343,7 @@ def _start_from(saved, config, volume):
 
 
 def render_file(snake_path: str, image_path: str, out_dir: str, *, mesh: str | None = None,
-                overwrite: bool = False) -> dict[str, Any]:
+                overwrite: bool = False, wait: bool = False) -> dict[str, Any]:
     """Rebuild the outputs of a saved snake on an image's grid (``segsnake render``).
 
     Parameters
@@ -276,6 +362,8 @@ def render_file(snake_path: str, image_path: str, out_dir: str, *, mesh: str | N
         Also the surface as this STL/OBJ/PLY file name.
     overwrite : bool
         Replace existing outputs.
+    wait : bool
+        Wait for another run holding the output directory instead of refusing (exit 5).
 
     Returns
     -------
@@ -290,13 +378,21 @@ def render_file(snake_path: str, image_path: str, out_dir: str, *, mesh: str | N
     OutputError
         As for :func:`segment_file` (exit 5).
     """
-    from segsnake.io import load_volume
-    from segsnake.rasterize import rasterize
-
     t_start = time.perf_counter()
     snake_path, image_path, out_dir = (os.fspath(p) for p in (snake_path, image_path, out_dir))
     names = _names(mesh)
     _check_out_dir(out_dir, overwrite, [snake_path, image_path], names)
+    with outdir.locked(out_dir, wait=wait):
+        _check_existing(out_dir, overwrite, names)
+        return _render_locked(snake_path, image_path, out_dir, mesh, overwrite, names, t_start)
+
+
+def _render_locked(snake_path, image_path, out_dir, mesh, overwrite, names, t_start
+                   ) -> dict[str, Any]:
+    """:func:`render_file` once the output directory is locked."""
+    from segsnake.io import load_volume
+    from segsnake.rasterize import rasterize
+
     world = load_snake(snake_path)
     # Only the grid is needed: NaN voxels do not stop a render (they are reported).
     volume = load_volume(image_path, nan="fill")
@@ -406,30 +502,6 @@ def _prior_energy(config):
     return make
 
 
-def _make_dirs(out_dir: str) -> list[str]:
-    """``makedirs`` that returns the directories it created, outermost first."""
-    missing = []
-    d = os.path.abspath(out_dir)
-    while not os.path.lexists(d):
-        missing.append(d)
-        parent = os.path.dirname(d)
-        if parent == d:
-            break
-        d = parent
-    try:
-        os.makedirs(out_dir, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{out_dir}: cannot create the output directory "
-                          f"({exc.strerror or exc})") from None
-    return missing[::-1]
-
-
-def _remove_empty_dirs(created: list[str]) -> None:
-    for d in reversed(created):
-        with contextlib.suppress(OSError):
-            os.rmdir(d)  # only succeeds when empty: never removes anything else
-
-
 def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], overwrite: bool,
                    names: tuple[str, ...], *, init_model=None, mesh: str | None = None,
                    truth=None, click=None) -> None:
@@ -439,22 +511,17 @@ def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], ove
     ``surface.vtp`` and ``mesh``; ``snake`` is the content of ``snake.json``; ``qc.png`` draws
     the model, ``init_model`` (dashed), ``truth`` and ``click``.
 
-    Every failure (disk full, read-only directory, an output that appeared meanwhile, Ctrl-C)
-    leaves the output directory as it was: the staging directory is removed, outputs already
-    moved are taken back, earlier outputs restored, and a directory this call created removed.
+    The caller holds the directory's lock (:func:`segsnake.outdir.locked`). Every failure (disk
+    full, read-only directory, Ctrl-C) leaves the output directory as it was: the staging
+    directory is removed, outputs already moved are taken back and earlier outputs restored
+    (:func:`segsnake.outdir.commit`; a kill is completed by the next run's recovery).
     """
     from segsnake.io import save_mask
 
-    created = _make_dirs(out_dir)
-    ok = False
     stage = None
     current = out_dir
     try:
-        try:
-            stage = tempfile.mkdtemp(prefix=".segsnake-", dir=out_dir)
-        except OSError as exc:
-            raise OutputError(f"{out_dir}: cannot write in the output directory "
-                              f"({exc.strerror or exc})") from None
+        stage = outdir.stage_dir(out_dir)
         try:
             current = os.path.join(out_dir, "mask.nii.gz")
             try:
@@ -475,67 +542,12 @@ def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], ove
             write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing, mask,
                              model, init_model, affine=volume.affine, truth=truth, click=click)
             current = out_dir
-            _commit(stage, out_dir, overwrite, names)
+            outdir.commit(stage, out_dir, overwrite, names)
         except OSError as exc:
             raise OutputError(f"{current}: cannot write ({exc.strerror or exc})") from None
-        ok = True
     finally:
         if stage is not None:
             shutil.rmtree(stage, ignore_errors=True)
-        if not ok:
-            _remove_empty_dirs(created)
-
-
-def _commit(stage: str, out_dir: str, overwrite: bool, names: tuple[str, ...]) -> None:
-    """Move the staged outputs into ``out_dir``: all of them, or (on any failure) none.
-
-    Earlier outputs are first hard-linked (or copied) into the staging directory so that they
-    can be put back; new outputs are moved in with ``os.replace`` (``overwrite``) or with
-    ``os.link``, which refuses a name that appeared since the start.
-    """
-    finals = [os.path.join(out_dir, n) for n in names]
-    backups: dict[str, str] = {}
-    if overwrite:
-        for name, final in zip(names, finals):
-            if os.path.lexists(final):
-                keep = os.path.join(stage, ".old-" + name)
-                try:
-                    os.link(final, keep)
-                except OSError:
-                    shutil.copy2(final, keep)  # filesystems without hard links
-                backups[final] = keep
-    placed: list[str] = []
-    try:
-        for name, final in zip(names, finals):
-            src = os.path.join(stage, name)
-            if overwrite:
-                os.replace(src, final)
-            else:
-                try:
-                    os.link(src, final)
-                except FileExistsError:
-                    raise OutputError(f"{final}: already exists; use --overwrite to "
-                                      "replace it") from None
-                except OSError:  # no hard links here: check, then rename
-                    if os.path.lexists(final):
-                        raise OutputError(f"{final}: already exists; use --overwrite to "
-                                          "replace it") from None
-                    os.replace(src, final)
-            placed.append(final)
-    except BaseException:
-        for final in reversed(placed):
-            with contextlib.suppress(OSError):
-                if final in backups:
-                    os.replace(backups[final], final)
-                else:
-                    os.unlink(final)
-        raise
-    with contextlib.suppress(OSError):  # make the renames durable
-        fd = os.open(out_dir, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
 
 
 def _json_default(obj: Any) -> Any:

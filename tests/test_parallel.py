@@ -30,13 +30,22 @@ def test_thread_map_keeps_order_and_uses_the_pool(two_threads):
     assert nested == [[0, 1, 2], [0, 2, 4]]
 
 
-def test_one_thread_runs_in_the_caller():
+def test_one_thread_runs_in_one_pool_thread_off_the_main_thread():
+    """With one thread the items run one after the other in a single pool thread, so that the
+    main thread waits interruptibly (Ctrl-C reaches it during a long C call); from any other
+    thread they run in the caller."""
     parallel.set_threads(1)
     try:
         names = parallel.thread_map(lambda i: threading.current_thread().name, range(3))
+        other: list[list[str]] = []
+        t = threading.Thread(target=lambda: other.append(parallel.thread_map(
+            lambda i: threading.current_thread().name, range(3))), name="not-main")
+        t.start()
+        t.join()
     finally:
         parallel.set_threads(None)
-    assert set(names) == {threading.current_thread().name}
+    assert len(set(names)) == 1 and names[0].startswith("segsnake-worker")
+    assert other == [["not-main"] * 3]
 
 
 def test_thread_count_from_the_environment(monkeypatch):

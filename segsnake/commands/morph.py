@@ -17,7 +17,6 @@ import csv
 import json
 import os
 import shutil
-import tempfile
 
 from segsnake.commands import positive_int
 from segsnake.commands.reporting import add_output_options, emit
@@ -51,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
     from segsnake.errors import ConfigError, InputError, OutputError
     from segsnake.measure import closed_area
     from segsnake.morph import morph
-    from segsnake.runner import _check_out_dir, _commit, _make_dirs, _remove_empty_dirs
+    from segsnake import outdir
+    from segsnake.runner import _check_existing, _check_out_dir
 
     if args.steps < 2:
         raise ConfigError(f"--steps must be at least 2 (the two inputs), got {args.steps}")
@@ -76,12 +76,12 @@ def run(args: argparse.Namespace) -> int:
     rows = [{"step": i, "tau": float(t), "volume_mm3": float(m.volume()),
              "area_mm2": closed_area(m)} for i, (t, m) in enumerate(zip(taus, shapes))]
 
-    created = _make_dirs(args.out)
-    ok = False
-    stage = None
-    try:
+    # Staged and committed as segment's outputs, under the output directory's lock.
+    with outdir.locked(args.out):
+        _check_existing(args.out, args.overwrite, names)
+        stage = None
         try:
-            stage = tempfile.mkdtemp(prefix=".segsnake-", dir=args.out)
+            stage = outdir.stage_dir(args.out)
             for stem, m in zip(stems, shapes):
                 with open(os.path.join(stage, stem + ".json"), "w", encoding="utf-8") as fh:
                     json.dump(m.to_dict(), fh)
@@ -96,15 +96,12 @@ def run(args: argparse.Namespace) -> int:
                 writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
                 writer.writeheader()
                 writer.writerows(rows)
-            _commit(stage, args.out, args.overwrite, names)
+            outdir.commit(stage, args.out, args.overwrite, names)
         except OSError as exc:
             raise OutputError(f"{args.out}: cannot write ({exc.strerror or exc})") from None
-        ok = True
-    finally:
-        if stage is not None:
-            shutil.rmtree(stage, ignore_errors=True)
-        if not ok:
-            _remove_empty_dirs(created)
+        finally:
+            if stage is not None:
+                shutil.rmtree(stage, ignore_errors=True)
     record = {"out": args.out, "path": args.path, "aligned": args.align, "steps": rows}
     emit(args, record, [f"tau {r['tau']:.3f}: volume {r['volume_mm3']:.6g} mm^3, area "
                         f"{r['area_mm2']:.6g} mm^2" for r in rows]

@@ -21,6 +21,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--mesh", default=None, metavar="NAME.stl",
                         help="also write the surface as NAME.stl, NAME.obj or NAME.ply")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    parser.add_argument("--wait", action="store_true",
+                        help="when another segsnake run is writing into --out, wait for it "
+                             "instead of refusing (exit 5)")
     add_output_options(parser)
     parser.set_defaults(func=run)
     return parser
@@ -31,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
     from segsnake.runner import render_file
 
     mesh = SegmentConfig().replace(mesh=args.mesh).mesh  # the same check as segment --mesh
-    summary = render_file(args.snake, args.like, args.out, mesh=mesh, overwrite=args.overwrite)
+    summary = render_file(args.snake, args.like, args.out, mesh=mesh, overwrite=args.overwrite,
+                          wait=args.wait)
     warn("render", summary.get("warnings", []))
     names = " ".join(os.path.basename(p) for p in summary["outputs"].values())
     emit(args, summary, [f"rendered {summary['mask_voxels']} voxels "

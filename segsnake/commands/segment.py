@@ -124,6 +124,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--config", default=None, metavar="FILE.yaml",
                         help="options from a YAML file (flags given here override it)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    parser.add_argument("--wait", action="store_true",
+                        help="when another segsnake run is writing into --out, wait for it "
+                             "instead of refusing (exit 5)")
     add_output_options(parser)
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
                         help="threads for the array work (default: $SEGSNAKE_NUM_THREADS, "
@@ -196,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = segment_file(args.image, args.out, config, truth_path=args.truth,
                                truth_label=args.truth_label, truth_label_option="--truth-label N",
-                               overwrite=args.overwrite,
+                               overwrite=args.overwrite, wait=args.wait,
                                progress=progress)
     finally:
         bar.close()
