@@ -431,15 +431,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             break
         mu_out = rg.local_outside_mean(image_s, shell, sp, p.outside_smooth_mm)
         del inside, shell
-        w = rg.two_class_density(image_s, intensity, mu_out)
-        if p.combine == "max":
-            np.maximum(w, w_click, out=w)
-        elif p.combine == "blend":
-            # where the outside differs from the inside by a few spreads, the two classes; where
-            # it looks like the inside, the click's band
-            a = np.clip((np.abs(mu_out - np.float32(intensity.mu)) / np.float32(intensity.sigma)
-                         - 1.0) / 2.0, 0.0, 1.0)
-            w = a * w + (1 - a) * w_click
+        w = rg.blend(rg.two_class_density(image_s, intensity, mu_out), w_click, mu_out,
+                     intensity)
         del mu_out
         if p.edge_length_mm > 0:
             w += rg.edge_density(image, sp, polarity, contrast, p.edge_length_mm,

@@ -39,7 +39,7 @@ from segsnake.errors import SegmentationError
 from segsnake.parallel import gaussian_filter
 
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
-           "boundary_fraction",
+           "boundary_fraction", "blend",
            "local_outside_mean", "two_class_density", "edge_density", "step_contrast"]
 
 @dataclass(frozen=True)
@@ -65,7 +65,6 @@ class RegionParams:
     #: Two-class stages, each reading the outside afresh beyond the previous one's surface (a
     #: surface inside the step reads part of the object as outside, which pulls it inwards).
     two_class_rounds: int = 3
-    combine: str = "blend"
     #: Coarse to fine (``coarse_to_fine: true``, off by default: measured, it sharpens the
     #: perfect-edge caudate from 0.879 to 0.925 but lets the real one leak into its
     #: neighbours): after the two-class rounds on the initial grid (9 x 9 unless given), the last
@@ -213,6 +212,18 @@ def two_class_density(image_s: NDArray, model: IntensityModel, outside_mean: NDA
         b = image_s[i] - outside_mean[i]
         out[i] = np.tanh((a * a - b * b) * inv)
     return out
+
+
+def blend(two_class: NDArray, click: NDArray, outside_mean: NDArray,
+          model: IntensityModel) -> NDArray:
+    """``a * two_class + (1 - a) * click``, ``a = clip((|mu_out - mu| / sigma - 1) / 2, 0, 1)``:
+    where the local outside differs from the inside by 3 spreads or more, the two classes;
+    where it looks like the inside (within one spread: a same-intensity neighbour, about which
+    the two classes say nothing), the click's band. (Measured on the phantoms: the two classes
+    alone or the blend 0.970-0.987, the larger of the two densities 0.829-0.873.)"""
+    a = np.abs(outside_mean - np.float32(model.mu)) / np.float32(model.sigma)
+    a = np.clip((a - 1) / 2, 0, 1).astype(np.float32)
+    return a * two_class + (1 - a) * click
 
 
 def edge_density(image: NDArray, spacing: Sequence[float], polarity: int, contrast: float,

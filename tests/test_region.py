@@ -11,8 +11,8 @@ from segsnake.errors import ConfigError, SegmentationError
 from segsnake.metrics import dice
 from segsnake.phantoms import make_phantom
 from segsnake.pipeline import region_energy, segment_volume
-from segsnake.region import (IntensityModel, RegionParams, edge_density, local_outside_mean,
-                             region_density, two_class_density)
+from segsnake.region import (IntensityModel, RegionParams, blend, edge_density,
+                             local_outside_mean, region_density, two_class_density)
 
 
 def test_intensity_model_is_the_median_and_the_mad_with_a_floor():
@@ -148,3 +148,14 @@ def test_boundary_fraction_is_the_share_of_the_surface_on_a_step():
     assert boundary_fraction(image, on, (1.0, 1.0, 1.0), -1, 10.0, 2.0) == 0.0  # wrong polarity
     inside = SphereModel.unit(9, 9).transformed(4.0 * np.eye(3), [20.0, 20.0, 20.0])
     assert boundary_fraction(image, inside, (1.0, 1.0, 1.0), 1, 10.0, 2.0) == 0.0
+
+
+def test_blend_trusts_the_two_classes_only_where_the_outside_differs():
+    m = IntensityModel(mu=100.0, sigma=10.0, range=400.0)
+    two = np.full((1, 1, 4), -0.5, np.float32)
+    click = np.full((1, 1, 4), 0.7, np.float32)
+    out = np.array([100.0, 110.0, 120.0, 140.0], np.float32).reshape(1, 1, 4)  # 0, 1, 2, 4 spreads
+    w = blend(two, click, out, m).ravel()
+    assert w[0] == pytest.approx(0.7) and w[1] == pytest.approx(0.7)  # looks like the inside
+    assert w[2] == pytest.approx(0.5 * -0.5 + 0.5 * 0.7)
+    assert w[3] == pytest.approx(-0.5)
