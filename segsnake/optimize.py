@@ -37,6 +37,10 @@ class OptimizeResult:
     history: list[float] = field(default_factory=list)
 
 
+#: A surface whose volume falls below this fraction of its start's collapsed (the end check of
+#: :func:`minimize_energy`; the region stages refuse such steps, ``pipeline._Admissible``).
+MIN_VOLUME_FRACTION = 0.02
+
 def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300,
                     tol: float = 1e-5, step_tol_mm: float = 1e-3,
                     max_step_mm: float = 1.0, memory: int = 10,
@@ -44,7 +48,8 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
                     admissible: Callable[[NDArray], bool] | None = None,
                     bounds_mm: NDArray | None = None,
                     callback: Callable[[int, float, NDArray], bool | None] | None = None,
-                    min_volume_fraction: float = 0.02, window: int = 5) -> OptimizeResult:
+                    min_volume_fraction: float = MIN_VOLUME_FRACTION,
+                    window: int = 5) -> OptimizeResult:
     """Minimize ``energy`` starting from ``model`` with step-limited L-BFGS.
 
     Parameters

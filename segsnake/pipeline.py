@@ -40,7 +40,7 @@ from segsnake.distance import distance_to
 from segsnake.energy import AxialTension, FluxTerm, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.frames import flux_frame
-from segsnake.optimize import minimize_energy
+from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
 from segsnake.parallel import gaussian_filter, pieces, thread_map
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
@@ -79,9 +79,6 @@ QUADRATURE_RTOL_RUNNING = 2e-2
 #: Tension of cylinder snakes per mm^2 of lateral surface, in units of the edge map's peak,
 #: applied as a pull along the axis (see :func:`_stage_energy`).
 CYLINDER_TENSION = 0.2
-#: The region stages refuse steps that shrink the surface below this fraction of its start's
-#: volume (see :class:`_Admissible`); the optimizer's end check uses the same fraction.
-MIN_VOLUME_FRACTION = 0.02
 
 
 @dataclass
@@ -444,9 +441,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         if k == p.two_class_rounds - 1 and config.coarse_to_fine and config.m1 is None \
                 and config.m2 is None:
             model = _finer_grids(run, model, p)
-    t0 = time.perf_counter()
-    mask = _final_mask(model, image.shape, sp)
-    run.timings["mask_s"] = time.perf_counter() - t0
+    # The last pass of the loop rasterized the final surface (and checked it is not empty).
+    mask = inside
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
@@ -643,9 +639,10 @@ class _Run:
         self.iterations = 0
         self.timings: dict[str, float] = {"lookup_s": 0.0, "optimize_s": 0.0}
 
-    def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None):
-        model, res = _run_stage(model, lookup, -1.0, self.config, self.bounds, self.extra, band,
-                                feature_mm, tol, node_spacing)
+    def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
+               weight=-1.0, region=False):
+        model, res = _run_stage(model, lookup, weight, self.config, self.bounds, self.extra, band,
+                                feature_mm, tol, node_spacing, region)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         self.history.append({"stage": name, **res})
@@ -660,14 +657,10 @@ class _Run:
             t0 = time.perf_counter()
             density = Lookup.from_field(density, self.sp, divergence_of_gradient=False)
             self.timings["lookup_s"] += time.perf_counter() - t0
-        self.lookup = lookup = density
+        self.lookup = density
         p = self.region_params
-        model, res = _run_stage(model, lookup, 1.0, self.config, self.bounds, self.extra,
-                                p.step_mm, p.edge_smooth_mm, tol=tol, region=True)
-        self.timings["optimize_s"] += res["time_s"]
-        self.iterations += res["iterations"]
-        self.history.append({"stage": name, **res})
-        return model
+        return self._stage(name, model, density, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
+                           region=True)
 
     def capture(self, model, edges: NDArray, smooth_mm: float,
                 node_spacing: float = CAPTURE_NODE_SPACING):
@@ -727,12 +720,10 @@ def edge_support(model: SplineSurface, f: NDArray, spacing: Sequence[float]) -> 
     the fraction of the snake that found an edge; a snake that ended in empty space or in
     noise has almost none.
     """
-    gb, w = model.quadrature(4)
-    s, su, sv = gb.evaluate(model.control_points())
-    area = w * np.linalg.norm(np.cross(sv, su), axis=-1)
-    idx = (s / np.asarray(spacing)).reshape(-1, 3).T
-    values = ndimage.map_coordinates(f, idx, order=1, mode="constant", cval=0.0)
-    return float(np.sum(area.ravel() * values) / max(np.sum(area), 1e-300))
+    pts, _, area = model.area_samples(4)
+    values = ndimage.map_coordinates(f, (pts / np.asarray(spacing)).T, order=1, mode="constant",
+                                     cval=0.0)
+    return float(np.sum(area * values) / max(np.sum(area), 1e-300))
 
 
 def _model_radius(model: SplineSurface) -> float:

@@ -135,8 +135,7 @@ class IntensityModel:
 
 def smoothed(image: NDArray, spacing: Sequence[float], sigma_mm: float) -> NDArray:
     """The image (float32) smoothed by a Gaussian of ``sigma_mm`` along every axis."""
-    return gaussian_filter(np.asarray(image, dtype=np.float32),
-                           [sigma_mm / s for s in spacing], mode="nearest")
+    return gaussian_filter(image, [sigma_mm / s for s in spacing], mode="nearest")
 
 
 def image_range(image_s: NDArray) -> float:
@@ -171,13 +170,7 @@ def boundary_fraction(image_s: NDArray, model, spacing: Sequence[float], polarit
     leaked into tissue like the object's, or stopped inside it, has little of its area there."""
     from scipy import ndimage
 
-    gb, w = model.quadrature(4)
-    pts, su, sv = gb.evaluate(model.control_points())
-    n = np.cross(sv, su)
-    norm = np.linalg.norm(n, axis=-1)
-    area = (w * norm).ravel()
-    unit = (n / np.maximum(norm, 1e-300)[..., None]).reshape(-1, 3)
-    pts = pts.reshape(-1, 3)
+    pts, unit, area = model.area_samples(4)
     sp = np.asarray(spacing, dtype=np.float64)
 
     def sample(p: NDArray) -> NDArray:

@@ -240,6 +240,17 @@ class SplineSurface:
         v, wv = gauss_legendre_grid(self.m2, int(order_v))
         return self.grid_basis(u, v), wu[:, None] * wv[None, :]
 
+    def area_samples(self, order: int = 4) -> tuple[NDArray, NDArray, NDArray]:
+        """Gauss-Legendre nodes on the surface: points ``(N, 3)``, outward unit normals
+        ``(N, 3)`` and area weights ``(N,)``, so that ``sum(weights * f(points))`` is the
+        surface integral of ``f``."""
+        gb, w = self.quadrature(order)
+        s, su, sv = gb.evaluate(self.control_points())
+        n = self.orientation * np.cross(sv, su)
+        norm = np.linalg.norm(n, axis=-1)
+        unit = n / np.maximum(norm, 1e-300)[..., None]
+        return s.reshape(-1, 3), unit.reshape(-1, 3), (w * norm).ravel()
+
     def volume(self, order: int = 8) -> float:
         """Signed enclosed volume ``1/3 integral sigma . n du dv`` (positive when outward).
 

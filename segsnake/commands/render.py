@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from segsnake.commands import add_wait_option
 from segsnake.commands.reporting import add_output_options, emit, warn
 
 HELP = "rebuild mask, surface and QC picture of a saved snake (or edited points) on an image's grid"
@@ -21,9 +22,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--mesh", default=None, metavar="NAME.stl",
                         help="also write the surface as NAME.stl, NAME.obj or NAME.ply")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    parser.add_argument("--wait", action="store_true",
-                        help="when another segsnake run is writing into --out, wait for it "
-                             "instead of refusing (exit 5)")
+    add_wait_option(parser)
     add_output_options(parser)
     parser.set_defaults(func=run)
     return parser

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from segsnake.commands import positive_int
+from segsnake.commands import add_wait_option, positive_int
 from segsnake.config import ENERGIES
 from segsnake.commands.reporting import add_output_options, emit, progress_off, warn
 
@@ -124,9 +124,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--config", default=None, metavar="FILE.yaml",
                         help="options from a YAML file (flags given here override it)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    parser.add_argument("--wait", action="store_true",
-                        help="when another segsnake run is writing into --out, wait for it "
-                             "instead of refusing (exit 5)")
+    add_wait_option(parser)
     add_output_options(parser)
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
                         help="threads for the array work (default: $SEGSNAKE_NUM_THREADS, "
