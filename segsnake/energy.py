@@ -26,7 +26,8 @@ from numpy.typing import NDArray
 
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["Sampler", "Energy", "FluxTerm", "AxialTension", "SumEnergy", "flux_integrand_grads"]
+__all__ = ["Sampler", "Energy", "FluxTerm", "AxialTension", "SumEnergy", "flux_integrand_grads",
+           "cap_nodes"]
 
 
 class Sampler(Protocol):
@@ -62,12 +63,17 @@ def flux_integrand_grads(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weig
 class FluxTerm:
     """``weight * integral_V h dV`` through a lookup ``G`` (see the module docstring).
 
-    For an open cylinder only the lateral surface is integrated. That is the closed-surface flux
-    when the end caps are perpendicular to x, i.e. the cylinder's axis is perpendicular to x;
-    :func:`segsnake.frames.flux_frame` picks a frame where it is (a permutation of the array
-    axes, or a rotated, resampled grid). In any other frame the caps' ``integral G n_x`` is
-    missing. (Closing the caps exactly, commit "FluxTerm closes open cylinders...", makes the
-    capture stop about 4 mm inside the Table 7.2 wall, beyond the refinement's reach.)
+    For a cylinder, ``closed=False`` integrates only the lateral surface. That is the
+    closed-surface flux when the end caps are perpendicular to x, i.e. the cylinder's axis is
+    perpendicular to x; :func:`segsnake.frames.flux_frame` picks a frame where it is (a
+    permutation of the array axes, or a rotated, resampled grid). ``closed=True`` adds the two
+    end caps, the planar fans ``tau(u, s) = c + s (sigma(u, e) - c)`` (``e`` = 0 and 1, ``c``
+    the ring's mean point) with which the volume, the mask and the mesh close the tube: the
+    surface is then closed in any orientation, and the flux is the volume integral whatever the
+    frame (design.md, "A closed cylinder"). Each cap is a surface of the same control points,
+    integrated with ``order_u`` nodes per knot interval around and :func:`cap_nodes` nodes
+    across. (With the edge stages, closing the caps made the capture stop about 4 mm inside the
+    Table 7.2 wall: they keep the open tube in its frame.)
 
     Parameters
     ----------
@@ -79,15 +85,20 @@ class FluxTerm:
         Multiplier (negative to *maximize* the integral).
     order : int or (int, int)
         Gauss-Legendre nodes per knot interval (in u and v, or ``(order_u, order_v)``).
+    closed : bool
+        Cylinders: add the end caps (above). Ignored for spheres, which are closed.
     """
 
     model: SplineSurface
     sampler: Sampler
     weight: float = 1.0
     order: int | tuple[int, int] = 4
+    closed: bool = False
 
     def __post_init__(self) -> None:
         self.basis, self.weights = self.model.quadrature(self.order)
+        self.caps = _Caps(self.model, self.basis.u, self.weights.sum(axis=1)) \
+            if self.closed and self.model.kind == "cylinder" else None
 
     def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
         C = self.model.control_points(params)
@@ -96,8 +107,64 @@ class FluxTerm:
         G = G.reshape(s.shape[:2])
         dG = dG.reshape(s.shape)
         value, g, gu, gv = flux_integrand_grads(G, dG, su, sv, self.weights, self.model.orientation)
-        grad = self.model.grid_gradient_to_params(self.basis.adjoint(g, gu, gv))
+        grad_C = self.basis.adjoint(g, gu, gv)
+        if self.caps is not None:
+            value += self.caps.flux(C, self.sampler, grad_C)
+        grad = self.model.grid_gradient_to_params(grad_C)
         return self.weight * value, self.weight * grad
+
+
+def cap_nodes(m1: int, order_u: int) -> int:
+    """Gauss-Legendre nodes across a cylinder's end cap (from the ring's mean point to the ring):
+    the lateral surface's node density around (``order_u`` per interval ``2 pi r / M1``) over
+    the cap's radius r."""
+    return max(4, int(np.ceil(order_u * m1 / (2 * np.pi))))
+
+
+class _Caps:
+    """The flux through a cylinder's two planar fan caps and its gradient on the control grid.
+
+    At each end ``e`` the ring is ``r(u) = sum_k R_k phi_k(u)`` with ``R = C psi(e)`` (the axial
+    basis at ``v = e``), its mean point ``c = sum_i w_i r(u_i)`` (the u weights sum to 1), and
+    the cap ``tau(u, s) = c + s (r(u) - c)``: ``tau_u = s r_u`` and ``tau_s = r - c``. The
+    outward normal is ``o (tau_s x tau_u)`` with ``o`` the model's orientation at ``v = 0``
+    and its opposite at ``v = 1`` (the rule of :meth:`CylinderModel.volume`).
+    """
+
+    def __init__(self, model: SplineSurface, u: NDArray, wu: NDArray) -> None:
+        from segsnake.surfaces import gauss_legendre_grid
+
+        self.Bu = model._basis_u(u, 0)  # (nu, M1)
+        self.dBu = model._basis_u(u, 1)
+        self.psi = model._basis_v(np.array([0.0, 1.0]), 0)  # (2, L)
+        order_u = len(u) // model.m1
+        self.s, ws = gauss_legendre_grid(1, cap_nodes(model.m1, order_u))
+        self.wu = wu
+        self.weights = wu[:, None] * ws[None, :]
+        self.signs = (model.orientation, -model.orientation)
+
+    def flux(self, C: NDArray, sampler: Sampler, grad_C: NDArray) -> float:
+        """Both caps' flux ``sum W G n_x``; adds its gradient to ``grad_C (M1, L, 3)``."""
+        s = self.s[None, :, None]
+        total = 0.0
+        for psi, sign in zip(self.psi, self.signs):
+            R = np.einsum("l,kld->kd", psi, C)
+            ring, ring_u = self.Bu @ R, self.dBu @ R  # (nu, 3)
+            c = self.wu @ ring
+            radial = ring - c
+            tau = c + s * radial[:, None, :]  # (nu, ns, 3)
+            tau_u = s * ring_u[:, None, :]
+            tau_s = np.broadcast_to(radial[:, None, :], tau.shape)
+            G, dG = sampler.sample(tau.reshape(-1, 3))
+            value, g, g_u, g_s = flux_integrand_grads(G.reshape(tau.shape[:2]),
+                                                      dG.reshape(tau.shape), tau_u, tau_s,
+                                                      self.weights, sign)
+            total += value
+            d_c = np.sum(g * (1 - s) - g_s, axis=(0, 1))
+            d_ring = np.sum(g * s + g_s, axis=1) + self.wu[:, None] * d_c
+            d_ring_u = np.sum(g_u * s, axis=1)
+            grad_C += psi[None, :, None] * (self.Bu.T @ d_ring + self.dBu.T @ d_ring_u)[:, None, :]
+        return total
 
 
 @dataclass

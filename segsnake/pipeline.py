@@ -76,6 +76,16 @@ QUADRATURE_RTOL = 2e-3
 #: catches gross under-resolution (measured: 0.2-1 % while a blob's refinement runs).
 QUADRATURE_CHECK_EVERY = 25
 QUADRATURE_RTOL_RUNNING = 2e-2
+#: A tube's control rings per diameter along its length (:func:`tube_rings`), between 4 rings
+#: and MAX_RINGS: a ring can follow a change of calibre or of direction over about one diameter.
+RINGS_PER_DIAMETER = 2.0
+MAX_RINGS = 32
+#: The region energy's density beyond the field of view (voxels of padding, and the density
+#: there: +1, what the region densities give far outside an object, whose inside is negative).
+#: Space the image does not show is not the object: a tube that leaves the volume ends on its
+#: face, instead of following the face's density continued outwards (:mod:`segsnake.lookup`).
+FOV_PAD = 2
+FOV_DENSITY = 1.0
 #: Tension of cylinder snakes per mm^2 of lateral surface, in units of the edge map's peak,
 #: applied as a pull along the axis (see :func:`_stage_energy`).
 CYLINDER_TENSION = 0.2
@@ -359,15 +369,15 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
 def region_energy(config) -> bool:
     """Does ``config`` segment with the region energy (:func:`_segment_region`)?
 
-    ``energy: auto`` chooses it for a sphere around a filled object (``feature: edge``); a thin
-    sheet (``feature: surface``), a cylinder and a ``seed_point`` (which picks one of the edge
-    map's surfaces) keep the edge stages (docs/design.md).
+    ``energy: auto`` chooses it for a filled object (``feature: edge``): a sphere, or a
+    cylinder closed by its end caps (:class:`FluxTerm`); a thin sheet (``feature: surface``)
+    and a ``seed_point`` (which picks one of the edge map's surfaces) keep the edge stages
+    (docs/design.md).
     """
     if config.energy == "auto":
-        return config.shape == "sphere" and config.feature == "edge" and config.seed_point is None
-    if config.energy == "region" and (config.shape != "sphere" or config.feature != "edge"):
-        raise ConfigError("energy: region segments a sphere around a filled object "
-                          "(shape: sphere, feature: edge)")
+        return config.feature == "edge" and config.seed_point is None
+    if config.energy == "region" and config.feature != "edge":
+        raise ConfigError("energy: region segments a filled object (feature: edge)")
     return config.energy == "region"
 
 
@@ -388,6 +398,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     """
     from segsnake import region as rg
     from segsnake.rasterize import rasterize
+    from segsnake.window import Window
 
     p = params or rg.RegionParams()
     report = progress or (lambda stage, frac: None)
@@ -396,59 +407,100 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     run.timings["init_s"] = init_s
     t0 = time.perf_counter()
     image_s = rg.smoothed(image, sp, p.smooth_mm)
-    intensity = rg.IntensityModel.from_samples(
-        image_s[_click_core(model, image.shape, sp, p.core_fraction)], rg.image_range(image_s),
-        p.min_sigma_fraction)
-    w_click = rg.region_density(image_s, intensity)
+    window = Window.around(model, image.shape, sp, p.window_mm)
+    core = _click_core(window.model_in(model), window.shape, sp, p.core_fraction)
+    intensity = rg.IntensityModel.from_samples(image_s[window.slices][core],
+                                               rg.image_range(image_s), p.min_sigma_fraction)
+    del core
     run.timings["edge_map_s"] = time.perf_counter() - t0
+
+    def stage(start, density, name, tol=None):
+        # One stage in a window around the surface; while its result comes near a face of the
+        # window (which held it back), again from the same start in a window around both
+        # (segsnake.window).
+        nonlocal window
+        margin = p.window_mm
+        while True:
+            t0 = time.perf_counter()
+            w = density(window)
+            run.timings["edge_map_s"] += time.perf_counter() - t0
+            model = window.model_out(run.region(window.model_in(start), w, name, tol, window))
+            del w
+            if not window.reaches(model, p.shell_mm):
+                return model
+            margin *= 2  # a surface that grows far needs few restarts
+            window = window.union(Window.around(model, image.shape, sp, margin))
+            run.history[-1]["window_grown"] = True
+
     report("region", 0.1)
     if not on_boundary:
-        model = run.region(model, w_click, "region", p.interim_tol)
+        model = stage(model, lambda win: rg.region_density(image_s[win.slices], intensity),
+                      "region", p.interim_tol)
+        if model.kind == "cylinder" and config.m2 is None:
+            # Now that the tube's calibre is known: about one control ring per diameter.
+            from segsnake.resample import resample
+
+            m2 = tube_rings(model)
+            if m2 != model.m2:
+                model = resample(model, model.m1, m2)
     report("two classes", 0.5)
 
     for k in range(p.two_class_rounds + 1):
         # The outside, read beyond the current surface; after the last round it scores the
         # result (an inside that does not differ from its outside found no boundary).
         t0 = time.perf_counter()
-        inside = rasterize(model, image.shape, sp)
+        start, win = model, window
+        sub = image_s[win.slices]
+        inside = rasterize(win.model_in(model), win.shape, sp)
         if not inside.any():
             raise SegmentationError("the surface encloses no voxel centre")
         shell = distance_to(inside, sp)
         shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
         if not shell.any():
             raise SegmentationError("the surface filled the whole image: no outside to compare")
-        contrast, polarity = rg.step_contrast(image_s, inside, shell)
+        contrast, polarity = rg.step_contrast(sub, inside, shell)
         if contrast < p.min_separation * intensity.sigma:
             raise SegmentationError(
                 f"no boundary found: inside and outside the surface differ by {contrast:.3g}, "
                 f"{contrast / intensity.sigma:.2f} x the click's spread; check the initialization")
         if config.polarity in ("bright", "dark"):
             polarity = 1 if config.polarity == "bright" else -1
+        run.timings["edge_map_s"] += time.perf_counter() - t0
         if k == p.two_class_rounds:
             break
-        mu_out = rg.local_outside_mean(image_s, shell, sp, p.outside_smooth_mm)
-        del inside, shell
-        w = rg.blend(rg.two_class_density(image_s, intensity, mu_out), w_click, mu_out,
-                     intensity)
-        del mu_out
-        if p.edge_length_mm > 0:
-            w += rg.edge_density(image, sp, polarity, contrast, p.edge_length_mm,
-                                 p.edge_smooth_mm)
-        run.timings["edge_map_s"] += time.perf_counter() - t0
-        model = run.region(model, w, f"two classes, round {k + 1}",
-                           None if k == p.two_class_rounds - 1 else p.interim_tol)
-        del w
+
+        def density(w_win, shell=shell):
+            # The two classes with the outside read around the round's starting surface (in a
+            # grown window, read again there).
+            if w_win != win:
+                inside_w = rasterize(w_win.model_in(start), w_win.shape, sp)
+                shell = distance_to(inside_w, sp)
+                shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
+            sub = image_s[w_win.slices]
+            mu_out = rg.local_outside_mean(sub, shell, sp, p.outside_smooth_mm)
+            w = rg.blend(rg.two_class_density(sub, intensity, mu_out),
+                         rg.region_density(sub, intensity), mu_out, intensity)
+            if p.edge_length_mm > 0:
+                w += rg.edge_density(image[w_win.slices], sp, polarity, contrast,
+                                     p.edge_length_mm, p.edge_smooth_mm)
+            return w
+
+        del inside
+        model = stage(model, density, f"two classes, round {k + 1}",
+                      None if k == p.two_class_rounds - 1 else p.interim_tol)
+        del density, shell
         if k == p.two_class_rounds - 1 and config.coarse_to_fine and config.m1 is None \
                 and config.m2 is None:
-            model = _finer_grids(run, model, p)
+            model = window.model_out(_finer_grids(run, window.model_in(model), p))
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
-    mask = inside
+    mask = win.embed(inside)
+    del inside, shell
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
     settings = {"energy": "region", "intensity_model": intensity.to_dict(),
                 "contrast": contrast, "separation": contrast / intensity.sigma,
-                "boundary_fraction": on_step,
+                "boundary_fraction": on_step, "window": [list(window.lo), list(window.hi)],
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
@@ -464,7 +516,8 @@ def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     lookup = run.lookup
 
     def image_energy(m: SplineSurface, order: int) -> float:
-        return FluxTerm(m, lookup, weight=1.0, order=order).value_and_grad(m.params)[0]
+        flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
+        return flux.value_and_grad(m.params)[0]
 
     for m in p.finer_m:
         if m <= min(model.m1, model.m2):
@@ -648,14 +701,18 @@ class _Run:
         self.history.append({"stage": name, **res})
         return model
 
-    def region(self, model, density, name: str, tol: float | None = None):
-        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`; an array, or
-        its lookup); ``self.lookup`` keeps the lookup."""
+    def region(self, model, density, name: str, tol: float | None = None, window=None):
+        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`; an array on
+        ``window`` (a :class:`segsnake.window.Window`; the model in its coordinates), or a
+        lookup); ``self.lookup`` keeps the lookup."""
         from segsnake.lookup import Lookup
 
         if isinstance(density, np.ndarray):
             t0 = time.perf_counter()
-            density = Lookup.from_field(density, self.sp, divergence_of_gradient=False)
+            density = _Shifted(
+                Lookup.from_field(window.pad(density, FOV_PAD, FOV_DENSITY), self.sp,
+                                  divergence_of_gradient=False),
+                FOV_PAD * np.asarray(self.sp))
             self.timings["lookup_s"] += time.perf_counter() - t0
         self.lookup = density
         p = self.region_params
@@ -730,6 +787,24 @@ def _model_radius(model: SplineSurface) -> float:
     if model.kind == "cylinder":
         return model.axis_and_radius()[2]
     return float((3 * abs(model.volume(order=4)) / (4 * math.pi)) ** (1 / 3))
+
+
+def tube_rings(model: CylinderModel) -> int:
+    """M2 for a tube: :data:`RINGS_PER_DIAMETER` per diameter along its centerline (the rings'
+    mean points, at 4 samples per knot interval), the diameter twice the mean distance of the
+    surface from the centerline."""
+    nu, v = 4 * model.m1, np.linspace(0.0, 1.0, 4 * model.m2 + 1)
+    rings, _, _ = model.evaluate(np.arange(nu) / nu, v)  # (nu, nv, 3)
+    centres = rings.mean(axis=0)
+    length = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
+    radius = float(np.linalg.norm(rings - centres, axis=2).mean())
+    return int(np.clip(round(RINGS_PER_DIAMETER * length / (2 * radius)), 4, MAX_RINGS))
+
+
+def _volume_per_area(model: SplineSurface) -> float:
+    """Volume per mm^2 of boundary of the model's kind at its radius r: r / 3 for a sphere,
+    r / 2 for a tube (the scale of a volume energy relative to a surface one)."""
+    return _model_radius(model) / (2 if model.kind == "cylinder" else 3)
 
 
 def longest_intervals(model: SplineSurface, params: NDArray | None = None) -> NDArray:
@@ -848,7 +923,8 @@ class _QuadratureCheck:
     def __call__(self, params: NDArray, when: str = "converged") -> bool:
         if self._fine_term is None:
             c = self.coarse
-            self._fine_term = FluxTerm(c.model, c.sampler, weight=c.weight, order=self.fine)
+            self._fine_term = FluxTerm(c.model, c.sampler, weight=c.weight, order=self.fine,
+                                       closed=c.closed)
         coarse_e = self.coarse.value_and_grad(params)[0]
         fine_e = self._fine_term.value_and_grad(params)[0]
         error = abs(fine_e - coarse_e) / max(abs(fine_e), 1e-300)
@@ -929,7 +1005,7 @@ class _Admissible:
 
 def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> SumEnergy:
     """The stage's energy; its first term is the image's :class:`FluxTerm`."""
-    flux = FluxTerm(model, lookup, weight=weight, order=order)
+    flux = FluxTerm(model, lookup, weight=weight, order=order, closed=region)
     terms = [flux]
     if REGULARIZATION > 0:
         # Internal energy: bending of the deviation from the nearest ellipsoid (elliptic
@@ -941,10 +1017,11 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
         # n7_rf40, Dice 0.906 -> 0.960 with the area).
         area = abs(model.area(order=4))
         r = _model_radius(model)
-        # A volume density's energy on its boundary is about the volume, r / 3 per mm^2.
-        scale = r / 3 if region else 1.0
+        # A volume density's energy on its boundary is about the volume: r / 3 per mm^2 of a
+        # sphere, r / 2 of a tube.
+        scale = _volume_per_area(model) if region else 1.0
         terms.append(BendingRegularizer(model, weight=REGULARIZATION * scale * area / r ** 2))
-    if model.kind == "cylinder":
+    if model.kind == "cylinder" and not region:
         # The open ends feel no flux: without tension they drift past the ends of the
         # structure. Tension makes a tube's length without edge support cost a fraction of what
         # surface on an edge gains (the edge map peaks at about 1 per mm^2): CYLINDER_TENSION
@@ -956,8 +1033,21 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
         terms.append(AxialTension(model, weight=CYLINDER_TENSION * perimeter))
     if extra_energy is not None:
         # The prior's weight is relative to the image energy, scaled like the bending.
-        terms.append(_Scaled(extra_energy(model), r / 3) if region else extra_energy(model))
+        terms.append(_Scaled(extra_energy(model), _volume_per_area(model)) if region
+                     else extra_energy(model))
     return SumEnergy(terms)
+
+
+@dataclass
+class _Shifted:
+    """A lookup built on a grid padded by ``offset`` mm on every side, sampled in the
+    coordinates of the unpadded grid."""
+
+    lookup: Any
+    offset: NDArray
+
+    def sample(self, points: NDArray) -> tuple[NDArray, NDArray]:
+        return self.lookup.sample(np.asarray(points) + self.offset)
 
 
 @dataclass

@@ -96,6 +96,11 @@ class RegionParams:
     #: The click's intensities are read within this fraction of its radius from its centre (the
     #: centre is what a click places best; a perturbed or generous radius reaches outside).
     core_fraction: float = 0.5
+    #: The stages work in a window of the volume around the surface (:mod:`segsnake.window`):
+    #: its bounding box plus this margin (mm), enough for the shell the outside is read in and
+    #: that reading's smoothing along the surface. A surface that comes within ``shell_mm`` of
+    #: a face of the window runs its stage again in a window around it.
+    window_mm: float = 20.0
 
 
 #: Fewest voxels the click's intensity model is estimated from (a sphere around the click's

@@ -342,7 +342,7 @@ CASES = [
      ["--center", "12", "12", "12", "--radii", "6", "6", "6", "--energy", "edge"], 4,
      ["no edges found outside the initial surface"]),
     ("a dot, region energy", _dot, ["--center", "12", "12", "12", "--radii", "6", "6", "6"], 4,
-     ["left the volume"]),
+     ["no boundary found"]),
 ]
 
 

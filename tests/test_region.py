@@ -83,11 +83,12 @@ def test_which_energy_a_configuration_gets():
     base = SegmentConfig()
     assert region_energy(base)
     assert not region_energy(base.replace(feature="surface"))
-    assert not region_energy(base.replace(shape="cylinder"))
+    assert region_energy(base.replace(shape="cylinder"))
+    assert not region_energy(base.replace(shape="cylinder", feature="surface"))
     assert not region_energy(base.replace(seed_point=[1.0, 2.0, 3.0]))
     assert not region_energy(base.replace(energy="edge"))
     with pytest.raises(ConfigError, match="energy: region"):
-        region_energy(base.replace(energy="region", shape="cylinder"))
+        region_energy(base.replace(energy="region", feature="surface"))
 
 
 @pytest.mark.parametrize("kind,options,start", [

@@ -216,8 +216,11 @@ def test_init_from_a_result(ball, tmp_path, capsys):
     """``--init`` of a result starts there (no growth from a click) and stays close: measured
     Dice 0.9937 and a relative energy difference of 0.013 on this ball (region energy), short
     of Dice 1.0 and 1e-9: the intensity model is read from the saved snake's core, not the
-    click's, and the outside afresh. A second --init, from that run, is closer (Dice 0.9994,
-    1.7e-4). Resampled to 12 x 12: Dice 0.9923 with the first result."""
+    click's, and the outside afresh. A second --init, from that run, is closer (Dice 0.9991,
+    1.0e-3; it was 1.7e-4 before the region stages' lookups were padded beyond the field of
+    view, a change of the lookup's spline coefficients of about 1e-6 near the faces: the
+    stopping tolerance, not the energy, sets this difference). Resampled to 12 x 12: Dice
+    0.9923 with the first result."""
     _, image, seg = ball
     again, twice, m12 = tmp_path / "again", tmp_path / "twice", tmp_path / "m12"
     for out, start, extra in ((again, seg, []), (twice, again, []),
@@ -233,7 +236,7 @@ def test_init_from_a_result(ball, tmp_path, capsys):
     dice, rel = dice_and_energy(again, seg)
     assert dice > 0.99 and rel < 0.02, (dice, rel)
     dice, rel = dice_and_energy(twice, again)
-    assert dice > 0.999 and rel < 5e-4, (dice, rel)
+    assert dice > 0.999 and rel < 2e-3, (dice, rel)
     record = json.loads((m12 / "snake.json").read_text())
     assert (record["model"]["m1"], record["model"]["m2"]) == (12, 12)
     assert (record["initial_model"]["m1"], record["initial_model"]["m2"]) == (12, 12)
