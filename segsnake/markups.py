@@ -122,15 +122,8 @@ def read_text(path: str, what: str) -> str:
 
 
 def read_json(path: str, what: str) -> Any:
-    """A JSON file's content; every way reading it fails is one :class:`InputError` line.
-
-    Parameters
-    ----------
-    path : str
-        The file.
-    what : str
-        What the file should be, for the messages ("markups file", "snake file").
-    """
+    """A JSON file's content: :func:`read_text` (same parameters, same errors), and a file that
+    is not JSON is one :class:`InputError` line too."""
     text = read_text(path, what)
     try:
         return json.loads(text)

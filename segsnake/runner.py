@@ -610,7 +610,8 @@ def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], ove
                              model, init_model, affine=volume.affine, truth=truth, click=click,
                              profile=profile)
             current = out_dir
-            outdir.commit(stage, out_dir, overwrite, names)
+            # A new set without a profile (a sphere) replaces an earlier cylinder's profile too.
+            outdir.commit(stage, out_dir, overwrite, names, remove=(PROFILE_NAME,))
         except OSError as exc:
             raise OutputError(f"{current}: cannot write ({exc.strerror or exc})") from None
     finally:
