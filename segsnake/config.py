@@ -394,7 +394,8 @@ class SegmentConfig:
     """Every option of ``segsnake segment``; field names are a contract shared with the CLI and YAML.
 
     ``centerline`` (a polyline along a tube: a file, or its points) has the positions' units
-    (its radii the radius's). Positions (``center``, ``axis_start``, ``axis_end``, ``seed_point``) are voxel indices
+    (its radii the radius's). Positions (``center``, ``axis_start``, ``axis_end``,
+    ``seed_point``) are voxel indices
     ``(i, j, k)`` along the array axes, or a 3D Slicer markups file (``.mrk.json``, read by
     :func:`segsnake.markups.resolve_markups` once the image is loaded), and lengths
     (``radii``, ``radius``) are in voxels, as the ``segment`` flags take them; with ``world`` true they are NIfTI world millimetres instead

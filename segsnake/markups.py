@@ -27,7 +27,8 @@ from segsnake.config import POSITION_KEYS
 from segsnake.errors import ConfigError, InputError
 from segsnake.io import _LPS_TO_RAS
 
-__all__ = ["read_markups", "read_control_points", "read_json", "read_text", "document_points", "resolve_markups", "is_markups_value"]
+__all__ = ["read_markups", "read_control_points", "read_json", "read_text", "document_points",
+           "resolve_markups", "is_markups_value"]
 
 # LPS <-> RAS: the first two world axes point the other way.
 

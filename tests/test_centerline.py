@@ -251,7 +251,9 @@ def test_a_tube_from_its_centerline_is_measured(tmp_path, capsys):
     middle = rows[np.abs(rows[:, 0] - rows[-1, 0] / 2) < rows[-1, 0] / 4]
     truth = 2 * ph.params["geometry"]["mid_radius_mm"]
     np.testing.assert_allclose(middle[:, 5], truth, rtol=0.04)  # equivalent diameter
-    assert np.all(middle[:, 6] <= middle[:, 5] + 1e-4) and np.all(middle[:, 7] >= middle[:, 5] - 1e-4)
+    # min <= equivalent <= max diameter
+    assert np.all(middle[:, 6] <= middle[:, 5] + 1e-4)
+    assert np.all(middle[:, 7] >= middle[:, 5] - 1e-4)
     snake = json.loads((out / "snake.json").read_text())
     assert snake["profile"]["columns"] == list(PROFILE_COLUMNS)
     np.testing.assert_allclose(snake["profile"]["rows"], rows, atol=1e-4)
@@ -263,3 +265,11 @@ def test_a_tube_from_its_centerline_is_measured(tmp_path, capsys):
     assert rc == 0, capsys.readouterr().err
     again = np.loadtxt(tmp_path / "render" / "profile.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(again, rows, atol=2e-4)
+    # A profile.csv already there is refused like the other outputs (exit 5), nothing written.
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "profile.csv").write_text("mine\n")
+    rc = main(["render", str(out / "snake.json"), "--like", str(tmp_path / "in" / "image.nii.gz"),
+               "--out", str(tmp_path / "taken")])
+    err = capsys.readouterr().err
+    assert rc == 5 and f"{tmp_path / 'taken' / 'profile.csv'}: already exists" in err, err
+    assert sorted(p.name for p in (tmp_path / "taken").iterdir()) == ["profile.csv"]
