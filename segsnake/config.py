@@ -324,6 +324,23 @@ def _position(v: Any) -> list[float] | str:
     return _vec3()(v)
 
 
+def _centerline(v: Any) -> str | list[list[float]]:
+    # A centerline file (segsnake.centerline_files reads it once the image is loaded), or its
+    # points given inline: rows [x, y, z] or [x, y, z, radius], in the positions' units.
+    if isinstance(v, (str, os.PathLike)):
+        return _path(v)
+    rows = v if isinstance(v, (list, tuple)) else None
+    if rows is None or len(rows) < 2 or not all(
+            isinstance(r, (list, tuple)) and len(r) in (3, 4) and all(_is_number(x) for x in r)
+            for r in rows) or len({len(r) for r in rows}) != 1:
+        raise ValueError(f"must be a centerline file (.csv, .json, .mrk.json) or a list of >= 2 "
+                         f"points, each [x, y, z] or each [x, y, z, radius]; got {_describe(v)}")
+    out = [[float(x) for x in r] for r in rows]
+    if not all(math.isfinite(x) for r in out for x in r):
+        raise ValueError("must hold finite numbers only")
+    return out
+
+
 def _optional(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
     def wrapped(v: Any) -> Any:
         return None if v is None else check(v)
@@ -339,6 +356,7 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "axis_start": _optional(_position),
     "axis_end": _optional(_position),
     "radius": _optional(lambda v: _float(v, low=0.0, strict_low=True)),
+    "centerline": _optional(_centerline),
     "world": _bool,
     "m1": _optional(lambda v: _int(v, low=M_MIN, high=M_MAX)),
     "m2": _optional(lambda v: _int(v, low=M_MIN, high=M_MAX)),
@@ -364,16 +382,20 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
 # Options that are positions: three numbers, or a 3D Slicer markups file (segsnake.markups).
 POSITION_KEYS = ("center", "seed_point", "axis_start", "axis_end")
 # Options whose value is (or may be) a file path: relative paths in a YAML file are relative to it.
-PATH_KEYS = ("prior", "init") + POSITION_KEYS
+PATH_KEYS = ("prior", "init", "centerline") + POSITION_KEYS
 # The options that describe a new initial shape, which a start from a saved snake (init) replaces.
-SHAPE_KEYS = ("center", "radii", "axis_start", "axis_end", "radius")
+SHAPE_KEYS = ("center", "radii", "axis_start", "axis_end", "radius", "centerline")
+# The options a centerline (a cylinder along a polyline) replaces.
+CENTERLINE_EXCLUDES = ("center", "radii", "axis_start", "axis_end")
 
 
 @dataclass
 class SegmentConfig:
     """Every option of ``segsnake segment``; field names are a contract shared with the CLI and YAML.
 
-    Positions (``center``, ``axis_start``, ``axis_end``, ``seed_point``) are voxel indices
+    ``centerline`` (a polyline along a tube: a file, or its points) has the positions' units
+    (its radii the radius's). Positions (``center``, ``axis_start``, ``axis_end``,
+    ``seed_point``) are voxel indices
     ``(i, j, k)`` along the array axes, or a 3D Slicer markups file (``.mrk.json``, read by
     :func:`segsnake.markups.resolve_markups` once the image is loaded), and lengths
     (``radii``, ``radius``) are in voxels, as the ``segment`` flags take them; with ``world`` true they are NIfTI world millimetres instead
@@ -387,6 +409,9 @@ class SegmentConfig:
     axis_start: list[float] | str | None = None
     axis_end: list[float] | str | None = None
     radius: float | None = None
+    # A cylinder along a polyline: a .csv/.json/.mrk.json file (segsnake.centerline_files), or
+    # its rows [x, y, z(, radius)] once read; implies shape cylinder.
+    centerline: str | list[list[float]] | None = None
     world: bool = False
     m1: int | None = None
     m2: int | None = None
@@ -464,6 +489,9 @@ class SegmentConfig:
                 values[key] = _VALIDATORS[key](value)
             except ValueError as exc:
                 raise ConfigError(f"{where}: {key}: {exc}") from None
+        if values.get("centerline") is not None and "shape" not in seen and \
+                values.get("shape", "sphere") == "sphere":
+            values["shape"] = "cylinder"  # a centerline is a tube's: it implies the cylinder
         config = cls(**values)
         problem = config._consistency_problem()
         if problem is not None:
@@ -482,6 +510,15 @@ class SegmentConfig:
                 verb = "describes" if len(given) == 1 else "describe"
                 return "init", (f"init starts from a saved snake; {', '.join(given)} {verb} a "
                                 f"new initial shape: give one or the other")
+        if self.centerline is not None:
+            if self.shape != "cylinder":
+                return "shape", (f"centerline initializes a cylinder; shape {self.shape} does not "
+                                 f"take one")
+            given = [k for k in CENTERLINE_EXCLUDES if getattr(self, k) is not None]
+            if given:
+                verb = "describes" if len(given) == 1 else "describe"
+                return "centerline", (f"centerline gives the tube's axis; {', '.join(given)} "
+                                      f"{verb} another initial shape: give one or the other")
         if isinstance(self.axis_start, list) and isinstance(self.axis_end, list):
             length = math.dist(self.axis_start, self.axis_end)
             if length == 0.0:

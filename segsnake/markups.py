@@ -27,7 +27,8 @@ from segsnake.config import POSITION_KEYS
 from segsnake.errors import ConfigError, InputError
 from segsnake.io import _LPS_TO_RAS
 
-__all__ = ["read_markups", "read_control_points", "read_json", "document_points", "resolve_markups", "is_markups_value"]
+__all__ = ["read_markups", "read_control_points", "read_json", "read_text", "document_points",
+           "resolve_markups", "is_markups_value"]
 
 # LPS <-> RAS: the first two world axes point the other way.
 
@@ -98,30 +99,38 @@ def read_control_points(path: str) -> tuple[NDArray, list[dict]]:
     return document_points(read_json(path, "markups file"), path)
 
 
-def read_json(path: str, what: str) -> Any:
-    """A JSON file's content; every way reading it fails is one :class:`InputError` line.
+def read_text(path: str, what: str) -> str:
+    """A UTF-8 text file's content; every way reading it fails is one :class:`InputError` line.
 
     Parameters
     ----------
     path : str
         The file.
     what : str
-        What the file should be, for the messages ("markups file", "snake file").
+        What the file should be, for the messages ("markups file", "centerline file").
     """
     try:
-        with open(path, encoding="utf-8") as fh:
-            return json.load(fh)
+        with open(path, encoding="utf-8", newline="") as fh:
+            return fh.read()
     except FileNotFoundError:
         raise InputError(f"{path}: no such {what}") from None
     except IsADirectoryError:
         raise InputError(f"{path}: is a directory, not a {what}") from None
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a {what} (not UTF-8 text)") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+
+
+def read_json(path: str, what: str) -> Any:
+    """A JSON file's content: :func:`read_text` (same parameters, same errors), and a file that
+    is not JSON is one :class:`InputError` line too."""
+    text = read_text(path, what)
+    try:
+        return json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: not a {what} (JSON error at line {exc.lineno}: "
                          f"{exc.msg})") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
 
 
 def document_points(doc: Any, path: str) -> tuple[NDArray, list[dict]]:

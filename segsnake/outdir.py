@@ -207,6 +207,9 @@ def recover(out_dir: str) -> dict[str, list[str]]:
             if os.path.lexists(src):
                 os.replace(src, os.path.join(out_dir, os.path.basename(name)))
                 done["rolled_forward"].append(name)
+        for name in entry.get("remove", []):  # earlier outputs the new set does not have
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(os.path.join(out_dir, os.path.basename(name)))
         fsync_dir(out_dir)
         os.unlink(journal)
         fsync_dir(out_dir)
@@ -249,11 +252,13 @@ def fsync_dir(path: str | os.PathLike[str]) -> None:
             os.close(fd)
 
 
-def _write_journal(out_dir: str, stage: str, names: tuple[str, ...]) -> str:
+def _write_journal(out_dir: str, stage: str, names: tuple[str, ...],
+                   remove: tuple[str, ...] = ()) -> str:
     journal = os.path.join(out_dir, JOURNAL)
     tmp = journal + ".tmp"
     with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump({"stage": os.path.basename(stage), "names": list(names), "pid": os.getpid()}, fh)
+        json.dump({"stage": os.path.basename(stage), "names": list(names), "remove": list(remove),
+                   "pid": os.getpid()}, fh)
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, journal)
@@ -262,9 +267,14 @@ def _write_journal(out_dir: str, stage: str, names: tuple[str, ...]) -> str:
 
 
 def commit(stage: str, out_dir: str, overwrite: bool, names: tuple[str, ...], *,
+           remove: tuple[str, ...] = (),
            on_step: Callable[[str], None] | None = None) -> None:
     """Move the staged files ``names`` into ``out_dir``: all of them, or (on a failure this
     process sees) none; a kill leaves a journal that :func:`recover` completes.
+
+    ``remove`` names earlier outputs that are not part of the new set (a sphere's result
+    replacing a cylinder's has no ``profile.csv``): with ``overwrite`` they are removed in the
+    same commit, so that the directory never mixes the old set and the new.
 
     The caller holds the lock. Signals are deferred for the whole commit. Earlier outputs are
     hard-linked (or copied) into the staging directory first, so that a failed rename (an I/O
@@ -287,8 +297,10 @@ def commit(stage: str, out_dir: str, overwrite: bool, names: tuple[str, ...], *,
             for final in finals:
                 if os.path.lexists(final):
                     raise OutputError(f"{final}: already exists; use --overwrite to replace it")
+        stale = tuple(n for n in remove if overwrite and n not in names
+                      and os.path.lexists(os.path.join(out_dir, n)))
         backups: dict[str, str] = {}
-        for name, final in zip(names, finals):
+        for name, final in zip(names + stale, finals + [os.path.join(out_dir, n) for n in stale]):
             if os.path.lexists(final):
                 keep = os.path.join(stage, ".old-" + name)
                 try:
@@ -296,8 +308,9 @@ def commit(stage: str, out_dir: str, overwrite: bool, names: tuple[str, ...], *,
                 except OSError:
                     shutil.copy2(final, keep)  # filesystems without hard links
                 backups[final] = keep
-        journal = _write_journal(out_dir, stage, names)
+        journal = _write_journal(out_dir, stage, names, stale)
         placed: list[str] = []
+        removed: list[str] = []
         try:
             if on_step is not None:
                 on_step("journal")
@@ -306,7 +319,14 @@ def commit(stage: str, out_dir: str, overwrite: bool, names: tuple[str, ...], *,
                 placed.append(final)
                 if on_step is not None:
                     on_step(name)
+            for name in stale:
+                final = os.path.join(out_dir, name)
+                os.unlink(final)
+                removed.append(final)
         except BaseException:
+            for final in removed:
+                with contextlib.suppress(OSError):
+                    os.replace(backups[final], final)
             for final in reversed(placed):
                 with contextlib.suppress(OSError):
                     if final in backups:

@@ -212,6 +212,10 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
                 axes = np.diag(r_idx * sp)
         return SphereModel.unit(m1, m2).transformed(axes, center)
     if config.shape == "cylinder":
+        if config.centerline is not None:  # issue 16: a tube along a polyline
+            from segsnake.centerline import centerline_model
+
+            return centerline_model(config, sp, shape, index_from_world)
         if config.axis_start is None or config.axis_end is None or config.radius is None:
             raise ConfigError("cylinder initialization needs --axis-start, --axis-end and --radius")
         a0 = point(config.axis_start, "--axis-start")

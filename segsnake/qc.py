@@ -5,7 +5,8 @@ the truth's (cyan), with a legend. Slices pass through the click (``--center``, 
 or the middle of a cylinder's axis), else through the result's centre. With the image affine the
 panels are laid out as a viewer shows them (:mod:`segsnake.anatomy`): axial, coronal and sagittal
 views, axes in world millimetres, the patient's right on the left, anterior and superior up, and
-the sides labelled R/L, A/P, S/I. matplotlib is imported on use only.
+the sides labelled R/L, A/P, S/I. A cylinder adds a fifth panel, its tube profile (diameters
+against arc length, :mod:`segsnake.profile`). matplotlib is imported on use only.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["click_index", "slice_panel", "qc_figure", "write_qc_picture"]
+__all__ = ["click_index", "slice_panel", "profile_panel", "qc_figure", "write_qc_picture"]
 
 FINAL = ("red", "solid", 1.0)
 INITIAL = ("yellow", "dashed", 0.8)
@@ -29,8 +30,9 @@ def click_index(config, volume) -> np.ndarray | None:
     Parameters
     ----------
     config : SegmentConfig
-        ``center``, else ``seed_point``, else the middle of ``axis_start``-``axis_end``; world
-        millimetres with ``config.world``.
+        ``center``, else ``seed_point``, else the middle of ``axis_start``-``axis_end``, else the
+        middle point of a ``centerline`` (its rows, once read); world millimetres with
+        ``config.world``.
     volume : Volume
         Converts world positions to indices.
     """
@@ -41,6 +43,9 @@ def click_index(config, volume) -> np.ndarray | None:
     elif config.axis_start is not None and config.axis_end is not None:
         point = 0.5 * (np.asarray(config.axis_start, dtype=np.float64)
                        + np.asarray(config.axis_end, dtype=np.float64))
+    elif config.centerline is not None and not isinstance(config.centerline, str):
+        rows = config.centerline
+        point = np.asarray(rows[len(rows) // 2][:3], dtype=np.float64)
     else:
         return None
     return volume.world_to_index(point) if config.world else point
@@ -158,9 +163,33 @@ def slice_panel(ax, image: np.ndarray, spacing, axis: int, index: int,
     ax.tick_params(labelsize=7)
 
 
+def profile_panel(ax, profile) -> None:
+    """A tube's diameters against arc length along its centerline (:mod:`segsnake.profile`).
+
+    Parameters
+    ----------
+    ax : matplotlib Axes
+    profile : segsnake.profile.TubeProfile
+    """
+    s = profile.arc_mm
+    ax.fill_between(s, profile.min_diameter, profile.max_diameter, color="tomato", alpha=0.25,
+                    linewidth=0, label="min-max caliper")
+    for d in (profile.min_diameter, profile.max_diameter):
+        ax.plot(s, d, color="tomato", linewidth=0.6)
+    ax.plot(s, profile.equivalent_diameter, color="red", linewidth=1.2,
+            label="equivalent 2 sqrt(A/pi)")
+    ax.set_xlabel("arc length along the centerline (mm)", fontsize=8)
+    ax.set_ylabel("diameter (mm)", fontsize=8)
+    top = float(np.max(profile.max_diameter)) if len(s) else 1.0
+    ax.set_ylim(0.0, 1.1 * top)
+    ax.set_title(f"tube profile ({profile.length_mm:.1f} mm)", fontsize=9)
+    ax.legend(fontsize=7, loc="lower center", frameon=False)
+    ax.tick_params(labelsize=7)
+
+
 def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=None, *,
               affine: np.ndarray | None = None, truth: np.ndarray | None = None,
-              click: Sequence[float] | None = None):
+              click: Sequence[float] | None = None, profile=None):
     """The QC figure: three orthogonal slices and a 3D view of the surface, with a legend.
 
     Parameters
@@ -181,6 +210,8 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
         A truth mask, drawn in cyan.
     click : 3 floats, optional
         Voxel indices the slices go through (the user's click); default the mask's centroid.
+    profile : segsnake.profile.TubeProfile, optional
+        A cylinder's profile: a fifth panel, its diameters against arc length.
 
     Returns
     -------
@@ -219,7 +250,8 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
     if point is not None:
         handles.append(Line2D([], [], color=CLICK, marker="+", linestyle="none", markersize=9,
                               label="click (slices through it)"))
-    fig = Figure(figsize=(13, 4.0), dpi=90)
+    panels = 5 if profile is not None else 4
+    fig = Figure(figsize=(13 + 3.3 * (panels - 4), 4.0), dpi=90)
     if affine is not None:
         from segsnake.anatomy import axis_directions
 
@@ -228,10 +260,10 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
     else:
         axes = [2, 1, 0]
     for panel, axis in enumerate(axes):
-        ax = fig.add_subplot(1, 4, panel + 1)
+        ax = fig.add_subplot(1, panels, panel + 1)
         slice_panel(ax, image, sp, axis, int(centre[axis]), contours, levels=(lo, hi),
                     affine=affine, point=point)
-    ax3 = fig.add_subplot(1, 4, 4, projection="3d")
+    ax3 = fig.add_subplot(1, panels, 4, projection="3d")
     mesh = model.to_mesh(4 * model.m1, 4 * model.m2)
     faces = np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]
     pts = np.asarray(mesh.points, dtype=np.float64)
@@ -249,6 +281,8 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
     else:
         ax3.set_title("surface (mm)", fontsize=9)
     ax3.tick_params(labelsize=6)
+    if profile is not None:
+        profile_panel(fig.add_subplot(1, panels, 5), profile)
     fig.legend(handles=handles, loc="upper center", ncol=len(handles), fontsize=8,
                frameon=False)
     # Fixed margins: tight_layout measured 0.15 s of text extents for the same result.
@@ -259,8 +293,8 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
 def write_qc_picture(path: str, image: np.ndarray, spacing, mask: np.ndarray, model,
                      init_model=None, *, affine: np.ndarray | None = None,
                      truth: np.ndarray | None = None,
-                     click: Sequence[float] | None = None) -> None:
+                     click: Sequence[float] | None = None, profile=None) -> None:
     """Write :func:`qc_figure` as a PNG at ``path`` (same parameters)."""
     fig = qc_figure(image, spacing, mask, model, init_model, affine=affine, truth=truth,
-                    click=click)
+                    click=click, profile=profile)
     fig.savefig(path, format="png")

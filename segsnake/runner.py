@@ -28,15 +28,18 @@ import numpy as np
 
 from segsnake import __version__, outdir
 from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
+from segsnake.centerline_files import read_centerline, resolve_centerline
 from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
 from segsnake.qc import click_index, write_qc_picture
-from segsnake.saved_snake import image_from_world, load_snake
+from segsnake.saved_snake import image_from_world, load_snake, world_from_image
 
 __all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes", "segment_file",
            "render_file"]
 
 OUTPUT_NAMES = ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png")
+# A cylinder's tube profile along its centerline (segsnake.profile), written with the others.
+PROFILE_NAME = "profile.csv"
 # The largest --scale, as a fraction of the image's longest extent in mm: the Gaussian filters then
 # stay within a few times the volume (bounded time), and a scale near the whole image is
 # already far outside any sensible use (the detector's scale is about a boundary's thickness).
@@ -46,21 +49,53 @@ COORDINATES = ("model control points in mm of scaled index space (i*sx, j*sy, k*
 
 
 def output_names(config) -> tuple[str, ...]:
-    """The files a run writes: the four :data:`OUTPUT_NAMES` and the ``mesh`` option's file."""
-    return _names(config.mesh)
+    """The files a run writes: the four :data:`OUTPUT_NAMES`, the ``mesh`` option's file, and a
+    new cylinder's :data:`PROFILE_NAME` (a start from a saved snake adds it once the snake's
+    kind is known)."""
+    return _names(config.mesh, config.shape == "cylinder" and config.init is None)
 
 
-def _names(mesh: str | None) -> tuple[str, ...]:
-    return OUTPUT_NAMES + ((mesh,) if mesh is not None else ())
+def _names(mesh: str | None, profile: bool = False) -> tuple[str, ...]:
+    return OUTPUT_NAMES + ((mesh,) if mesh is not None else ()) + \
+        ((PROFILE_NAME,) if profile else ())
 
 
-def _outputs(out_dir: str, mesh: str | None) -> dict[str, str]:
-    """The summary's ``outputs``: absolute paths by kind (mask, surface, snake, qc, mesh)."""
-    out = {name.split(".")[0]: os.path.abspath(os.path.join(out_dir, name))
-           for name in OUTPUT_NAMES}
-    if mesh is not None:
-        out["mesh"] = os.path.abspath(os.path.join(out_dir, mesh))
-    return out
+def _outputs(out_dir: str, names: tuple[str, ...], mesh: str | None) -> dict[str, str]:
+    """The summary's ``outputs``: absolute paths by kind (mask, surface, snake, qc, mesh,
+    profile)."""
+    return {("mesh" if name == mesh else name.split(".")[0]):
+            os.path.abspath(os.path.join(out_dir, name)) for name in names}
+
+
+def _add_profile(out_dir: str, overwrite: bool, names: tuple[str, ...], inputs: list
+                 ) -> tuple[str, ...]:
+    """``names`` with the profile, checked as the others were before the run (a saved snake
+    turned out to be a cylinder)."""
+    from segsnake.io import check_not_input
+
+    if PROFILE_NAME in names:
+        return names
+    check_not_input(os.path.join(out_dir, PROFILE_NAME), *inputs)
+    _check_existing(out_dir, overwrite, (PROFILE_NAME,))
+    return names + (PROFILE_NAME,)
+
+
+def _profile(model, volume):
+    """The tube profile of a cylinder snake (mm of the volume's scaled index space) in world mm,
+    or None for a sphere."""
+    if model.kind != "cylinder":
+        return None
+    from segsnake.profile import tube_profile
+
+    return tube_profile(world_from_image(model, volume.affine, volume.spacing))
+
+
+def _profile_summary(profile) -> dict[str, Any]:
+    """The summary's few numbers of a profile (the whole table is in snake.json and the CSV)."""
+    d = profile.equivalent_diameter
+    return {"length_mm": round(profile.length_mm, 4),
+            "equivalent_diameter_mm": {"min": float(d.min()), "median": float(np.median(d)),
+                                       "max": float(d.max())}}
 
 
 def _existing_ancestor(path: str) -> str:
@@ -222,11 +257,17 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     out_dir = os.fspath(out_dir)
     truth_path = None if truth_path is None else os.fspath(truth_path)
     names = output_names(config)
-    _check_out_dir(out_dir, overwrite, [image_path, truth_path, config.prior, config.init], names)
+    _check_out_dir(out_dir, overwrite, _inputs(image_path, truth_path, config), names)
     with outdir.locked(out_dir, wait=wait):
         _check_existing(out_dir, overwrite, names)  # again: a run that held the lock wrote them?
         return _segment_locked(image_path, out_dir, config, truth_path, truth_label,
                                truth_label_option, overwrite, progress, names, t_start)
+
+
+def _inputs(image_path, truth_path, config) -> list[str | None]:
+    """The files a ``segment`` run reads (no output may be one of them)."""
+    centerline = config.centerline if isinstance(config.centerline, str) else None
+    return [image_path, truth_path, config.prior, config.init, centerline]
 
 
 def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_label_option,
@@ -238,8 +279,12 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     from segsnake.pipeline import segment_volume
 
     t0 = time.perf_counter()
-    # A bad --init file is refused before the image is read.
+    # A bad --init or --centerline file is refused before the image is read.
     saved = load_snake(config.init) if config.init is not None else None
+    if saved is not None and saved.kind == "cylinder":
+        names = _add_profile(out_dir, overwrite, names, _inputs(image_path, truth_path, config))
+    centerline_file = config.centerline if isinstance(config.centerline, str) else None
+    centerline = read_centerline(centerline_file) if centerline_file is not None else None
     volume = load_volume(image_path, volume_index=config.volume, nan=config.nan)
     check_sizes(config, volume)
     truth = None
@@ -249,6 +294,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     load_s = time.perf_counter() - t0
     # Markups files given as positions become numbers here: converting them needs the affine.
     config = resolve_markups(config, volume.world_to_index)
+    config = resolve_centerline(config, centerline, volume.world_to_index, volume.spacing,
+                                volume.shape)
     init_model = None
     if saved is not None:
         init_model, config = _start_from(saved, config, volume)
@@ -298,6 +345,12 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         metrics = evaluate_masks(result.mask, truth, volume.spacing)
         summary.update({k: (float(v) if np.isfinite(v) else None) for k, v in metrics.items()})
     t0 = time.perf_counter()
+    profile = _profile(result.model, volume)
+    if profile is not None:
+        summary["profile"] = _profile_summary(profile)
+    settings = {**config.to_dict(), **result.settings}
+    if centerline_file is not None:
+        settings["centerline_file"] = os.path.abspath(centerline_file)
     snake = {
         "format": "segsnake-result",
         "version": __version__,
@@ -306,17 +359,19 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         "initial_model": result.init_model.to_dict(),
         "coordinates": COORDINATES,
         "affine": np.asarray(volume.affine).tolist(),
-        "settings": {**config.to_dict(), **result.settings},
+        "settings": settings,
         "energy_history": result.history,
         "timings": timings,
     }
+    if profile is not None:
+        snake["profile"] = profile.to_dict()
     _write_outputs(out_dir, volume, result.mask, result.model, snake, overwrite, names,
                    init_model=result.init_model, mesh=config.mesh, truth=truth,
-                   click=click_index(config, volume))
+                   click=click_index(config, volume), profile=profile)
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["timings"] = timings
-    summary["outputs"] = _outputs(out_dir, config.mesh)
+    summary["outputs"] = _outputs(out_dir, names, config.mesh)
     return summary
 
 
@@ -401,6 +456,9 @@ def _render_locked(snake_path, image_path, out_dir, mesh, overwrite, names, t_st
     if not mask.any():
         raise InputError(f"{snake_path}: the snake encloses no voxel centre of {image_path} "
                          f"(a snake of another image?)")
+    profile = _profile(model, volume)
+    if profile is not None:
+        names = _add_profile(out_dir, overwrite, names, [snake_path, image_path])
     summary: dict[str, Any] = {
         "image": os.path.abspath(image_path),
         "snake": os.path.abspath(snake_path),
@@ -410,15 +468,20 @@ def _render_locked(snake_path, image_path, out_dir, mesh, overwrite, names, t_st
         "mask_voxels": int(mask.sum()),
         "warnings": list(volume.warnings),
     }
+    if profile is not None:
+        summary["profile"] = _profile_summary(profile)
     timings = {"render_s": time.perf_counter() - t_start}
     snake = {"format": "segsnake-result", "version": __version__, "summary": summary,
              "model": model.to_dict(), "rendered_from": os.path.abspath(snake_path),
              "coordinates": COORDINATES, "affine": np.asarray(volume.affine).tolist(),
              "timings": timings}
-    _write_outputs(out_dir, volume, mask, model, snake, overwrite, names, mesh=mesh)
+    if profile is not None:
+        snake["profile"] = profile.to_dict()
+    _write_outputs(out_dir, volume, mask, model, snake, overwrite, names, mesh=mesh,
+                   profile=profile)
     timings["total_s"] = time.perf_counter() - t_start
     summary["timings"] = timings
-    summary["outputs"] = _outputs(out_dir, mesh)
+    summary["outputs"] = _outputs(out_dir, names, mesh)
     return summary
 
 
@@ -504,12 +567,13 @@ def _prior_energy(config):
 
 def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], overwrite: bool,
                    names: tuple[str, ...], *, init_model=None, mesh: str | None = None,
-                   truth=None, click=None) -> None:
+                   truth=None, click=None, profile=None) -> None:
     """Write every output into a staging directory, then move them into place together.
 
     ``mask`` and ``model`` (mm of the volume's scaled index space) give ``mask.nii.gz``,
     ``surface.vtp`` and ``mesh``; ``snake`` is the content of ``snake.json``; ``qc.png`` draws
-    the model, ``init_model`` (dashed), ``truth`` and ``click``.
+    the model, ``init_model`` (dashed), ``truth``, ``click`` and a cylinder's ``profile``
+    (:class:`segsnake.profile.TubeProfile`, also written as ``profile.csv``).
 
     The caller holds the directory's lock (:func:`segsnake.outdir.locked`). Every failure (disk
     full, read-only directory, Ctrl-C) leaves the output directory as it was: the staging
@@ -538,16 +602,32 @@ def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], ove
             text = json.dumps(snake, indent=1, default=_json_default)
             with open(os.path.join(stage, "snake.json"), "w", encoding="utf-8") as fh:
                 fh.write(text)
+            if profile is not None:
+                current = os.path.join(out_dir, PROFILE_NAME)
+                _write_profile(os.path.join(stage, PROFILE_NAME), profile)
             current = os.path.join(out_dir, "qc.png")
             write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing, mask,
-                             model, init_model, affine=volume.affine, truth=truth, click=click)
+                             model, init_model, affine=volume.affine, truth=truth, click=click,
+                             profile=profile)
             current = out_dir
-            outdir.commit(stage, out_dir, overwrite, names)
+            # A new set without a profile (a sphere) replaces an earlier cylinder's profile too.
+            outdir.commit(stage, out_dir, overwrite, names, remove=(PROFILE_NAME,))
         except OSError as exc:
             raise OutputError(f"{current}: cannot write ({exc.strerror or exc})") from None
     finally:
         if stage is not None:
             shutil.rmtree(stage, ignore_errors=True)
+
+
+def _write_profile(path: str, profile) -> None:
+    """``profile.csv``: a header (:data:`segsnake.profile.PROFILE_COLUMNS`), one row per sample
+    (mm, mm^2; 4 decimals)."""
+    from segsnake.profile import PROFILE_COLUMNS
+
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(",".join(PROFILE_COLUMNS) + "\n")
+        for row in profile.rows():
+            fh.write(",".join(f"{x:.4f}" for x in row) + "\n")
 
 
 def _json_default(obj: Any) -> Any:

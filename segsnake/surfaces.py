@@ -25,6 +25,7 @@ map with negative determinant reverses it; :meth:`SplineSurface.reversed` restor
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from functools import cached_property
@@ -43,6 +44,7 @@ __all__ = [
     "GridBasis",
     "gauss_legendre_grid",
     "load_model",
+    "axial_rings",
 ]
 
 FORMAT_VERSION = 1
@@ -596,38 +598,96 @@ class CylinderModel(SplineSurface):
     @classmethod
     def from_centerline(cls, points: ArrayLike, radii: ArrayLike | float, m1: int = 8,
                         m2: int | None = None) -> "CylinderModel":
-        """Tube along a curved centerline (polyline) with a radius per polyline point.
+        """Tube along a curved centerline (a polyline) with a radius per polyline point.
 
-        The centerline is resampled by arc length at ``l / M2`` (``l = -1..M2+1``, linear
-        extrapolation beyond the ends) and each ring lies in the plane normal to the tangent,
-        with a rotation-minimizing (parallel-transported) frame so the tube does not twist.
+        Parameters
+        ----------
+        points : array_like, shape (N, 3)
+            N >= 2 points along the tube, in order, no two consecutive ones equal.
+        radii : array_like, shape (N,), or float
+            The tube's radius at each point (or one for all), > 0.
+        m1 : int
+            Control points around.
+        m2 : int, optional
+            Control intervals along; default :func:`axial_rings` of the curve's length and mean
+            radius (about one ring per diameter).
+
+        Returns
+        -------
+        CylinderModel
+            Ring ``l`` (``l = 0..M2``) is the circle of the interpolated radius around the point
+            at arc length ``l / M2`` of the curve, in the plane normal to its tangent, so
+            ``sigma(., l / M2)`` passes through it (the splines interpolate). The curve is the
+            cubic spline through the points (chord-length parameter, not-a-knot ends; the
+            straight segment for two points), which keeps a few clicks along an arch on the arch
+            instead of cutting its corners. Rings ``-1`` and ``M2 + 1`` continue the end
+            tangents by one ring spacing, radii extrapolated linearly (so a straight or conical
+            tube is reproduced exactly). The rings' frames are rotation-minimizing (double
+            reflection, Wang et al. 2008), so the tube does not twist.
+
+        Raises
+        ------
+        ValueError
+            Fewer than 2 points, non-finite values, two consecutive equal points, radii <= 0.
         """
+        from scipy.interpolate import CubicSpline
+
         pts = np.asarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
             raise ValueError("centerline must be an (N >= 2, 3) array")
-        r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(pts),))
-        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(seg)])
-        if s[-1] <= 0:
-            raise ValueError("centerline has zero length")
-        s /= s[-1]
+        r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(pts),)).copy()
+        if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(r))):
+            raise ValueError("centerline points and radii must be finite")
+        if np.any(r <= 0):
+            raise ValueError(f"centerline radii must be > 0, got {float(r.min()):g}")
+        chord = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        if np.any(chord <= 0):
+            k = int(np.argmax(chord <= 0))
+            raise ValueError(f"centerline points {k + 1} and {k + 2} coincide")
+        t = np.concatenate([[0.0], np.cumsum(chord)])
+        if len(pts) == 2:
+            curve = CubicSpline(t, pts, bc_type=((1, (pts[1] - pts[0]) / t[1]),
+                                                 (1, (pts[1] - pts[0]) / t[1])))
+        else:
+            curve = CubicSpline(t, pts, bc_type="not-a-knot")
+        # Arc length of the spline against its parameter, on a fine grid (32 per segment).
+        tt = np.concatenate([np.linspace(t[i], t[i + 1], 33)[:-1] for i in range(len(t) - 1)]
+                            + [t[-1:]])
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(curve(tt), axis=0),
+                                                              axis=1))])
+        length = float(arc[-1])
         if m2 is None:
-            m2 = max(2, len(pts) - 1)
-        l = np.arange(-1, m2 + 2) / m2
-        centers = np.column_stack([_interp_extrap(l, s, pts[:, d]) for d in range(3)])
-        rad = _interp_extrap(l, s, r)
-        tangents = np.gradient(centers, axis=0)
+            m2 = axial_rings(length, float(np.mean(r)))
+        h = length / m2
+        t_ring = np.interp(np.arange(m2 + 1) * h, arc, tt)
+        centers = curve(t_ring)
+        tangents = curve(t_ring, 1)
         tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
-        e1, _ = _orthonormal_pair(tangents[0])
-        frames = []
-        for t in tangents:  # parallel transport of e1 along the curve
-            e1 = e1 - (e1 @ t) * t
-            e1 /= np.linalg.norm(e1)
-            frames.append((e1, np.cross(t, e1)))
+        rad = np.interp(t_ring, t, r)
+        # Rings -1 and M2+1: one spacing beyond the ends along the end tangents.
+        rad_ends = [rad[0] - (rad[1] - rad[0]), rad[-1] + (rad[-1] - rad[-2])]
+        rad = np.concatenate([[max(rad_ends[0], 0.5 * rad[0])], rad,
+                              [max(rad_ends[1], 0.5 * rad[-1])]])
+        centers = np.vstack([centers[0] - h * tangents[0], centers, centers[-1] + h * tangents[-1]])
+        tangents = np.vstack([tangents[:1], tangents, tangents[-1:]])
+        f1 = [_orthonormal_pair(tangents[0])[0]]
+        for j in range(1, len(centers)):  # double reflection (rotation-minimizing frames)
+            v1 = centers[j] - centers[j - 1]
+            c1 = v1 @ v1
+            r_l = f1[-1] - (2.0 / c1) * (v1 @ f1[-1]) * v1
+            t_l = tangents[j - 1] - (2.0 / c1) * (v1 @ tangents[j - 1]) * v1
+            v2 = tangents[j] - t_l
+            c2 = v2 @ v2
+            nxt = r_l - (2.0 / c2) * (v2 @ r_l) * v2 if c2 > 1e-300 else r_l
+            nxt = nxt - (nxt @ tangents[j]) * tangents[j]  # rounding only
+            f1.append(nxt / np.linalg.norm(nxt))
         theta = 2 * np.pi * np.arange(m1) / m1
         c = np.empty((m1, m2 + 3, 3))
-        for j, (f1, f2) in enumerate(frames):
-            c[:, j] = centers[j] + rad[j] * (np.cos(theta)[:, None] * f1 + np.sin(theta)[:, None] * f2)
+        for j in range(m2 + 3):
+            e1 = f1[j]
+            e2 = np.cross(tangents[j], e1)  # (e1, e2, tangent) right-handed: outward normals
+            c[:, j] = centers[j] + rad[j] * (np.cos(theta)[:, None] * e1
+                                             + np.sin(theta)[:, None] * e2)
         return cls(m1, m2, c.reshape(-1, 3))
 
     def reversed(self) -> "CylinderModel":
@@ -689,21 +749,43 @@ class CylinderModel(SplineSurface):
         return self._polydata(pts, np.concatenate(tris))
 
 
+#: Bounds of the axial control-interval count M2 chosen from a tube's length
+#: (:func:`axial_rings`): at least 4 (the cylinder's default M2 and the smallest --m2 the options
+#: take), at most 32 (a tube longer than 32 diameters gets rings more than a diameter apart;
+#: --m2 gives more).
+AXIAL_RINGS_MIN = 4
+AXIAL_RINGS_MAX = 32
+
+
+def axial_rings(length: float, mean_radius: float) -> int:
+    """M2 for a tube: about one control ring per diameter along it.
+
+    ``clip(round(length / (2 * mean_radius)), AXIAL_RINGS_MIN, AXIAL_RINGS_MAX)``.
+
+    Parameters
+    ----------
+    length : float
+        The tube's centerline length (mm).
+    mean_radius : float
+        Its mean radius (mm), > 0.
+
+    Returns
+    -------
+    int
+    """
+    if not (math.isfinite(length) and math.isfinite(mean_radius) and mean_radius > 0):
+        raise ValueError(f"a tube needs a finite length and a radius > 0, got {length:g}, "
+                         f"{mean_radius:g}")
+    rings = round(length / (2.0 * mean_radius))
+    return int(min(max(rings, AXIAL_RINGS_MIN), AXIAL_RINGS_MAX))
+
+
 def _orthonormal_pair(e3: NDArray) -> tuple[NDArray, NDArray]:
     """Two unit vectors completing ``e3`` to a right-handed orthonormal frame (e1, e2, e3)."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(e3[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = np.cross(helper, e3)
     e1 /= np.linalg.norm(e1)
     return e1, np.cross(e3, e1)
-
-
-def _interp_extrap(x: NDArray, xp: NDArray, fp: NDArray) -> NDArray:
-    """Linear interpolation with linear extrapolation beyond both ends."""
-    y = np.interp(x, xp, fp)
-    lo, hi = x < xp[0], x > xp[-1]
-    y[lo] = fp[0] + (x[lo] - xp[0]) * (fp[1] - fp[0]) / (xp[1] - xp[0])
-    y[hi] = fp[-1] + (x[hi] - xp[-1]) * (fp[-1] - fp[-2]) / (xp[-1] - xp[-2])
-    return y
 
 
 _KINDS: dict[str, Callable[..., SplineSurface]] = {"sphere": SphereModel, "cylinder": CylinderModel}

@@ -44,7 +44,8 @@ def test_defaults_are_the_documented_ones():
     assert c.energy == "auto"  # pipeline.region_energy decides
     assert c.init is None  # a new initial shape unless a saved snake is given
     assert c.prior_modes == 0  # a shape-model prior uses no modes unless asked
-    assert len(SegmentConfig.keys()) == 26
+    assert c.centerline is None  # a cylinder from its axis end points unless a centerline
+    assert len(SegmentConfig.keys()) == 27
 
 
 def test_to_dict_round_trip_and_normalisation():

@@ -220,6 +220,32 @@ def test_recovery_rolls_a_journal_forward_and_removes_stale_stages(tmp_path):
     assert snapshot(out) == {n: b"new" + n.encode() for n in NAMES}
 
 
+def test_a_commit_removes_an_earlier_output_the_new_set_lacks(tmp_path):
+    """A sphere's result over a cylinder's (issue 16): the old profile.csv goes in the same
+    commit, and a commit killed after its journal removes it when rolled forward."""
+    for kill in (False, True):
+        out = tmp_path / f"out{int(kill)}"
+        out.mkdir()
+        for name in NAMES + ("profile.csv",):
+            (out / name).write_bytes(b"old" + name.encode())
+        stage = _stage(out, b"new")
+        if kill:  # the journal written, nothing renamed yet
+            (out / outdir.JOURNAL).write_text(json.dumps(
+                {"stage": stage.name, "names": list(NAMES), "remove": ["profile.csv"]}))
+            recovered(out)
+        else:
+            outdir.commit(str(stage), str(out), True, NAMES, remove=("profile.csv",))
+            recovered(out)  # the staging directory (the runner removes its own)
+        assert snapshot(out) == {n: b"new" + n.encode() for n in NAMES}
+    # Without overwrite nothing is removed (the run would have been refused before).
+    out = tmp_path / "kept"
+    out.mkdir()
+    (out / "profile.csv").write_bytes(b"old")
+    outdir.commit(str(_stage(out, b"new")), str(out), False, NAMES, remove=("profile.csv",))
+    recovered(out)
+    assert snapshot(out)["profile.csv"] == b"old" and len(snapshot(out)) == 5
+
+
 def _commit_and_stop(out: str, stage: str, stop_at: str, sig: int) -> None:
     cancel.install(grace=None)
 

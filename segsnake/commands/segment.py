@@ -56,6 +56,12 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
     _position(g, "--axis-end", "cylinder axis end point")
     g.add_argument("--radius", type=float, default=None,
                    help="cylinder radius (voxels across the axis, or mm with --world)")
+    g.add_argument("--centerline", default=None, metavar="FILE",
+                   help="a cylinder along a polyline of points along the tube: FILE.csv (header "
+                        "x,y,z[,radius]), FILE.json ({\"points\": [[x, y, z], ...], "
+                        "\"radii\": ...}) or a 3D Slicer curve FILE.mrk.json (world mm, radii "
+                        "from --radius); implies --shape cylinder; M2 about one ring per "
+                        "diameter unless --m2")
     g.add_argument("--world", action="store_true", default=None,
                    help="positions and radii are in the image's world millimetres")
     g.add_argument("--init", default=None, metavar="SNAKE.json",
@@ -65,7 +71,9 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                         "given; the rough-start stages are skipped")
     m = parser.add_argument_group("model and features")
     m.add_argument("--m1", type=int, default=None, help="control points around (default 9 sphere, 8 cylinder)")
-    m.add_argument("--m2", type=int, default=None, help="control points along (default 9 sphere, 4 cylinder)")
+    m.add_argument("--m2", type=int, default=None,
+                   help="control points along (default 9 sphere, 4 cylinder; with --centerline "
+                        "about one per diameter, 4 to 32)")
     m.add_argument("--scale", type=float, default=None, metavar="MM",
                    help="detector scale in mm (default 1.5 x the largest voxel size)")
     m.add_argument("--feature", choices=("edge", "surface"), default=None,
@@ -134,7 +142,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return parser
 
 
-OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "world", "m1", "m2",
+OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "centerline",
+               "world", "m1", "m2",
                "scale", "feature", "polarity", "energy", "coarse_to_fine", "threshold",
                "seed_point", "max_iter", "volume", "nan", "prior", "prior_weight", "prior_space",
                "prior_modes", "mesh", "init")
