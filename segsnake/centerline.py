@@ -6,7 +6,7 @@ the units of the other position options: voxel indices (radii in voxels across t
 world millimetres with ``world`` (radii in mm). :func:`centerline_mm` converts them to the
 snake's coordinates (mm of scaled index space) and checks them; :func:`centerline_model` builds
 the initial snake with :meth:`segsnake.surfaces.CylinderModel.from_centerline`, M2 by
-:func:`segsnake.surfaces.axial_rings` (about one ring per diameter) unless ``m2`` is given.
+:func:`segsnake.surfaces.axial_rings` (two rings per diameter) unless ``m2`` is given.
 Pure: arrays and options in, a model out.
 """
 
@@ -146,7 +146,7 @@ def centerline_model(config, spacing: Sequence[float], shape: Sequence[int],
     ----------
     config : SegmentConfig
         ``centerline`` as rows (not a file: :func:`segsnake.centerline_files.resolve_centerline`
-        reads it), ``world``, ``radius``, ``m1``, ``m2`` (default: about one ring per diameter,
+        reads it), ``world``, ``radius``, ``m1``, ``m2`` (default: two rings per diameter,
         :func:`segsnake.surfaces.axial_rings`).
     spacing, shape, index_from_world
         As for :func:`centerline_mm`.

@@ -43,7 +43,7 @@ from segsnake.frames import flux_frame
 from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
 from segsnake.parallel import gaussian_filter, pieces, thread_map
 from segsnake.regularize import BendingRegularizer
-from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
+from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, axial_rings
 
 __all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
 
@@ -76,10 +76,6 @@ QUADRATURE_RTOL = 2e-3
 #: catches gross under-resolution (measured: 0.2-1 % while a blob's refinement runs).
 QUADRATURE_CHECK_EVERY = 25
 QUADRATURE_RTOL_RUNNING = 2e-2
-#: A tube's control rings per diameter along its length (:func:`tube_rings`), between 4 rings
-#: and MAX_RINGS: a ring can follow a change of calibre or of direction over about one diameter.
-RINGS_PER_DIAMETER = 2.0
-MAX_RINGS = 32
 #: The region energy's density beyond the field of view (voxels of padding, and the density
 #: there: +1, what the region densities give far outside an object, whose inside is negative).
 #: Space the image does not show is not the object: a tube that leaves the volume ends on its
@@ -441,7 +437,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         model = stage(model, lambda win: rg.region_density(image_s[win.slices], intensity),
                       "region", p.interim_tol)
         if model.kind == "cylinder" and config.m2 is None:
-            # Now that the tube's calibre is known: about one control ring per diameter.
+            # Now that the tube's calibre is known: rings a radius apart along it.
             from segsnake.resample import resample
 
             m2 = tube_rings(model)
@@ -794,15 +790,13 @@ def _model_radius(model: SplineSurface) -> float:
 
 
 def tube_rings(model: CylinderModel) -> int:
-    """M2 for a tube: :data:`RINGS_PER_DIAMETER` per diameter along its centerline (the rings'
-    mean points, at 4 samples per knot interval), the diameter twice the mean distance of the
-    surface from the centerline."""
+    """M2 for a tube (:func:`segsnake.surfaces.axial_rings`) from its centerline (the rings'
+    mean points, at 4 samples per knot interval) and its mean distance from it."""
     nu, v = 4 * model.m1, np.linspace(0.0, 1.0, 4 * model.m2 + 1)
     rings, _, _ = model.evaluate(np.arange(nu) / nu, v)  # (nu, nv, 3)
     centres = rings.mean(axis=0)
     length = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
-    radius = float(np.linalg.norm(rings - centres, axis=2).mean())
-    return int(np.clip(round(RINGS_PER_DIAMETER * length / (2 * radius)), 4, MAX_RINGS))
+    return axial_rings(length, float(np.linalg.norm(rings - centres, axis=2).mean()))
 
 
 def _volume_per_area(model: SplineSurface) -> float:

@@ -111,12 +111,12 @@ def test_per_point_radii_and_the_rings_rule(tmp_path):
     across = perpendicular_spacing(SPACING, [1, 0, 0])  # voxels -> mm across the tube
     np.testing.assert_allclose(np.linalg.norm(s - c[None], axis=-1).mean(axis=0),
                                [3 * across, 2 * across, 1 * across], rtol=1e-9)
-    # M2: about one ring per diameter, 16 mm / (2 * 2.5 mm) -> 3, at least 4 ...
-    assert cone.m2 == axial_rings(16.0, 2.5) == 4
+    # M2: two rings per diameter, 2 * 16 mm / (2 * 5 mm) -> 3, at least 4 ...
+    assert cone.m2 == axial_rings(16.0, 2.5) == 6 and axial_rings(16.0, 5.0) == 4
     # ... a longer, thinner tube gets more, up to AXIAL_RINGS_MAX; --m2 wins.
-    assert axial_rings(16.0, 0.5) == 16 and axial_rings(1e4, 1.0) == AXIAL_RINGS_MAX
-    thin = write_csv(tmp_path / "thin.csv", [[2, 12, 4], [21, 12, 4]], 0.4)
-    assert start_of(thin).m2 == round(19 / (2 * 0.4 * across)) == 19
+    assert axial_rings(16.0, 1.0) == 16 and axial_rings(1e4, 1.0) == AXIAL_RINGS_MAX
+    thin = write_csv(tmp_path / "thin.csv", [[2, 12, 4], [21, 12, 4]], 0.8)
+    assert start_of(thin).m2 == round(2 * 19 / (2 * 0.8 * across)) == 19
     assert start_of(thin, m2=6).m2 == 6
 
 
