@@ -536,14 +536,21 @@ def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:
-    """The voxels of the initial surface shrunk by ``fraction`` about its centre (grown back
-    towards the whole surface until it holds enough voxels for a spread)."""
+    """The voxels of the initial surface shrunk by ``fraction`` (grown back towards the whole
+    surface until it holds enough voxels for a spread): a sphere about its centre, a tube about
+    its centerline (each ring about its own centre, so that a curved tube's core stays in it)."""
     from segsnake.rasterize import rasterize
     from segsnake.region import MIN_SAMPLES
 
-    center = model.control_points().reshape(-1, 3).mean(axis=0)
+    C = model.control_points()
     for f in (fraction, 0.5 * (1 + fraction), 1.0):
-        core = rasterize(model.transformed(f * np.eye(3), (1 - f) * center), shape, spacing)
+        if model.kind == "cylinder":  # every control point is free: the grid is the params
+            rings = C.mean(axis=0, keepdims=True)
+            shrunk = model.with_params((rings + f * (C - rings)).reshape(-1, 3))
+        else:
+            centre = C.reshape(-1, 3).mean(axis=0)
+            shrunk = model.transformed(f * np.eye(3), (1 - f) * centre)
+        core = rasterize(shrunk, shape, spacing)
         if core.sum() >= MIN_SAMPLES:
             break
     return core
