@@ -17,8 +17,8 @@ on 1 mm isotropic voxels (``*_1x1x1``) and 0.6 x 0.6 x 2.5 mm (``*_0.6x0.6x2.5``
 on dark (0) with Gaussian noise of std 50 in those 8-bit units (Table 7.2's -4.17 dB row; the
 table gives each image's SNR, ``10 log10(var(clean) / std^2)`` as Table 7.2 defines it):
 
-- ``arch_*``: the aortic arch (``tube``: radius 12 mm tapering to 8.4, a seeded bulge up to
-  14.4 mm, bent through 180 degrees, both legs leaving through the k = 0 face);
+- ``arch_*``: the aortic arch (``tube``: radius 13.4 mm tapering to 9.4, a seeded sinus bulge
+  (15 mm at seed 0), bent through 180 degrees, both legs leaving through the k = 0 face);
 - ``s3_*``, ``s6_*``: the S-shaped vessel (``s-vessel``), radius 3 and 6 mm, inside the volume;
 - ``exit_*``: a straight oblique tube (``exiting-tube``, radius 5 mm) leaving through two faces;
 - ``oblique-1`` ... ``oblique-12``: the twelve random oblique straight tubes of
