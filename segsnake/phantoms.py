@@ -34,6 +34,8 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from segsnake.errors import ConfigError
+from segsnake.perturb import _in_ball
+from segsnake.swept_tube import SweptTube
 
 __all__ = [
     "Phantom",
@@ -44,6 +46,10 @@ __all__ = [
     "blob",
     "hollow_cylinder",
     "tube",
+    "s_vessel",
+    "exiting_tube",
+    "tube_truth",
+    "truth_profile",
     "brain",
     "rasterize_init",
     "phantom_options",
@@ -53,7 +59,7 @@ __all__ = [
 ]
 
 # Independent random streams per ingredient: np.random.default_rng([seed, stream]).
-_GEOMETRY, _BIAS, _NOISE = 1, 2, 3
+_GEOMETRY, _BIAS, _NOISE, _CLICK = 1, 2, 3, 4
 
 # 003 Table 7.2: noise standard deviation (8-bit units) -> SNR [dB] printed in the thesis.
 TABLE_7_2: dict[int, float] = {10: 9.91, 30: 0.27, 50: -4.17, 70: -7.10, 90: -9.21}
@@ -784,13 +790,156 @@ def hollow_cylinder(
         table_7_2_snr_db=TABLE_7_2.get(int(std)) if float(std).is_integer() else None,
         init_jaccard_analytic=0.125,
     )
+    # The truth as a straight swept tube: its in-volume centreline and the clicks along it.
+    record, ends_mm = _tube_record(_hollow_cylinder_tube(geometry, spacing), shape, spacing,
+                                   _affine(shape, spacing, grid_rotation), seed)
+    geometry.update(record, ends_init=_init_to_voxels(ends_mm, spacing), ends_init_mm=ends_mm)
     return _finish("hollow-cylinder", seed, image, truth, spacing, grid_rotation, options,
                    geometry, init)
 
 
 # --------------------------------------------------------------------------------------------
-# Tube: an aortic-arch-like vessel
+# Tubes: an aortic arch, an S-shaped vessel, a straight tube leaving the volume
 # --------------------------------------------------------------------------------------------
+#
+# Their truth is a swept-disk tube (segsnake.swept_tube): disks of radius r(s) normal to a
+# centreline, flat ends, so the section normal to the centreline is exactly the disk of radius
+# r(s). Each records in params["geometry"] the part of the centreline inside the volume
+# ("centerline": points in mm, voxels and world mm, radius, arc length), the suggested clicks
+# ("ends_init": a cylinder between the points at 15 % and 85 % of that length with half the
+# median radius, the real-data benchmark's tube click; "click": five points along the same stretch,
+# each moved by a seeded vector of up to CLICK_SHIFT times the local radius, radii halved), and
+# the image's SNR as Table 7.2 defines it (10 log10(var(clean) / std^2)). tube_truth() rebuilds
+# the truth's SweptTube from a record; truth_profile() measures its sections.
+
+#: Largest move of a centreline click point, as a fraction of the local radius.
+CLICK_SHIFT = 0.2
+#: Fractions of the in-volume centreline length where the clicks start and end.
+CLICK_SPAN = (0.15, 0.85)
+#: Number of centreline click points.
+CLICK_POINTS = 5
+
+
+def _voxel_box(shape: Sequence[int], spacing: Sequence[float]) -> tuple[NDArray, NDArray]:
+    """The volume's extent in mm: voxel centres span [0, (n-1) s], voxels half a voxel more."""
+    sp = np.asarray(spacing, dtype=float)
+    return -0.5 * sp, (np.asarray(shape, dtype=float) - 0.5) * sp
+
+
+def _in_volume_span(tube: SweptTube, shape: Sequence[int], spacing: Sequence[float]
+                    ) -> tuple[float, float]:
+    """Arc-length range of the longest stretch of the centreline inside the volume's box."""
+    lo, hi = _voxel_box(shape, spacing)
+    inside = np.all((tube.points >= lo) & (tube.points <= hi), axis=1)
+    if not inside.any():
+        raise ConfigError("the tube's centreline does not cross the field of view")
+    # Longest run of consecutive inside samples.
+    edges = np.diff(np.concatenate([[0], inside.astype(int), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    k = int(np.argmax(stops - starts))
+    first, last = starts[k], stops[k] - 1
+
+    def crossing(s_in: float, s_out: float) -> float:
+        # Bisection on arc length for where the centreline meets the box's face.
+        for _ in range(40):
+            mid = 0.5 * (s_in + s_out)
+            p = tube.point_at(mid)
+            if np.all((p >= lo) & (p <= hi)):
+                s_in = mid
+            else:
+                s_out = mid
+        return s_in
+
+    s0 = float(tube.arc[first]) if first == 0 else crossing(tube.arc[first], tube.arc[first - 1])
+    s1 = float(tube.arc[last]) if last == len(inside) - 1 else crossing(tube.arc[last],
+                                                                          tube.arc[last + 1])
+    return s0, s1
+
+
+def _snr_db(clean: NDArray, std: float) -> float:
+    """Table 7.2's SNR: ``10 log10(var(clean) / std^2)`` (inf without noise)."""
+    return float(10 * np.log10(float(clean.var(dtype=np.float64)) / std**2)) if std > 0 \
+        else float("inf")
+
+
+def _tube_record(tube: SweptTube, shape: Sequence[int], spacing: Sequence[float],
+                 affine: NDArray, seed: int) -> tuple[dict, dict]:
+    """The truth's centreline record and the suggested clicks (see the section comment).
+
+    Returns ``(record, ends_init_mm)``: ``record`` goes into ``params["geometry"]``, the second
+    is the end-point cylinder in mm of scaled index space (``_cylinder_init`` form).
+    """
+    from segsnake.pipeline import perpendicular_spacing
+
+    sp = np.asarray(spacing, dtype=float)
+    s0, s1 = _in_volume_span(tube, shape, spacing)
+    length = s1 - s0
+    n = max(2, int(np.ceil(length)) + 1)  # about 1 mm apart
+    s = np.linspace(s0, s1, n)
+    pts = tube.point_at(s)
+    r = tube.radius_at(s)
+    world = (affine[:3, :3] @ (pts / sp).T).T + affine[:3, 3]
+    closed = s0 <= tube.arc[0] + 1e-9 and s1 >= tube.length - 1e-9
+    centerline = {
+        "definition": "disks of radius r(s) normal to the centreline, flat ends "
+                      "(segsnake.swept_tube); the part inside the volume",
+        "arc_length_mm": s - s0,
+        "arc_offset_mm": s0,
+        "length_mm": length,
+        "points_mm": pts,
+        "points_voxels": pts / sp,
+        "points_world_mm": world,
+        "radius_mm": r,
+        "closed": bool(closed),  # both ends inside the volume
+    }
+    if closed:
+        centerline["volume_mm3_analytic"] = tube.volume_analytic()
+    # Clicks over the middle CLICK_SPAN of the in-volume length.
+    a, b = (s0 + f * length for f in CLICK_SPAN)
+    ends_mm = (tube.point_at(a), tube.point_at(b), 0.5 * float(np.median(r)))
+    sc = np.linspace(a, b, CLICK_POINTS)
+    rc = tube.radius_at(sc)
+    rng = _rng(seed, _CLICK)
+    shift = np.stack([_in_ball(rng, CLICK_SHIFT * float(rr)) for rr in rc])
+    cp = tube.point_at(sc) + shift
+    tang = tube.tangent_at(sc)
+    rc_half = 0.5 * rc
+    click = {
+        "arc_length_mm": sc - s0,
+        "points_mm": cp,
+        "points_voxels": cp / sp,
+        "radius_mm": rc_half,
+        # Radii in voxels by segment --radius' rule: the voxel size across the local direction.
+        "radius_voxels": [float(rr) / perpendicular_spacing(sp, t) for rr, t in zip(rc_half, tang)],
+        "shift_mm": np.linalg.norm(shift, axis=1),
+    }
+    return {"centerline": centerline, "click": click}, _cylinder_init(*ends_mm)
+
+
+def _tube_phantom(
+    kind: str, seed: int, tube: SweptTube, shape: tuple[int, int, int],
+    spacing: tuple[float, float, float], *, foreground: float, background: float, noise: float,
+    rician: bool, bias: float, blur: float, grid_rotation: Sequence[float] | None,
+    options: dict, geometry: dict, init: dict | None,
+) -> Phantom:
+    """Rasterize a swept tube, form the image, attach the centreline record and the clicks.
+
+    ``init`` is the phantom's suggested initialisation in mm; None takes the end-point cylinder.
+    """
+    # The signed function is capped a few voxels outside, so the partial-volume gradient sees
+    # no artificial jumps.
+    cap = 4.0 * float(max(spacing))
+    F = tube.signed_grid(shape, spacing, cap)
+    affine = _affine(shape, spacing, grid_rotation)
+    record, ends_mm = _tube_record(tube, shape, spacing, affine, seed)
+    occ = _occupancy(F, spacing)
+    clean = np.float32(background) + np.float32(foreground - background) * occ
+    std = noise * abs(foreground - background)
+    geometry = dict(geometry, **record, noise_std=std, snr_db=_snr_db(clean, std),
+                    ends_init=_init_to_voxels(ends_mm, spacing), ends_init_mm=ends_mm)
+    image = _form_image(clean, spacing, seed, blur=blur, bias=bias, noise_std=std, rician=rician)
+    return _finish(kind, seed, image, F < 0, spacing, grid_rotation, options, geometry,
+                   ends_mm if init is None else init)
 
 
 def _arch_centerline(
@@ -798,9 +947,11 @@ def _arch_centerline(
 ) -> tuple[NDArray, NDArray, int]:
     """Centreline samples (N, 3) in mm, arc-length parameter in [0, 1], index where the arch starts.
 
-    Ascending straight part (up the third axis) from below the field of view, a half circle of
-    radius ``arch_radius`` in the first/third-axis plane (drifting along the second axis, as the
-    aortic arch runs posteriorly), and a descending straight part leaving below the field of view.
+    Ascending straight part (up the third axis) from below the field of view, a half turn of
+    radius ``arch_radius`` in the first/third-axis plane that also moves ``2 drift`` along the
+    second axis (as the aortic arch runs posteriorly; the turn is a half ellipse in a tilted
+    plane, its tangent continuous with both straight parts), and a descending straight part
+    leaving below the field of view.
     """
     cx, cy, cz = fov / 2.0
     top = cz + rise  # height of the arch's centre
@@ -811,7 +962,7 @@ def _arch_centerline(
     n_arc = max(8, int(np.ceil(np.pi * arch_radius / step)))
     ang = np.linspace(np.pi, 0.0, n_arc, endpoint=False)
     arc = np.stack(
-        [cx + arch_radius * np.cos(ang), cy - drift * np.cos(ang), top + arch_radius * np.sin(ang)],
+        [cx + arch_radius * np.cos(ang), cy + drift * np.cos(ang), top + arch_radius * np.sin(ang)],
         axis=1,
     )
     down_z = np.linspace(top, bottom, n_up)
@@ -820,6 +971,28 @@ def _arch_centerline(
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     return pts, s / s[-1], n_up
+
+
+def _arch_geometry(seed: int, shape: tuple[int, int, int], spacing: tuple[float, float, float],
+                   radius: float | None, taper: float, arch_radius: float | None
+                   ) -> tuple[SweptTube, dict, int]:
+    """The arch's swept tube, its geometry record and the index where the arch starts."""
+    fov = np.asarray(shape) * np.asarray(spacing)
+    fov_c = _fov_center(shape, spacing)
+    r_a = 0.09 * fov[0] if radius is None else _check_fraction("radius", radius)
+    Ra = 0.25 * fov[0] if arch_radius is None else _check_fraction("arch_radius", arch_radius)
+    if r_a <= 0 or Ra <= r_a:
+        raise ConfigError(f"need 0 < radius ({r_a:g}) < arch_radius ({Ra:g})")
+    rng = _rng(seed, _GEOMETRY)
+    drift = float(rng.uniform(0.05, 0.12) * fov[1])
+    bulge = float(rng.uniform(0.1, 0.2))
+    step = 0.25 * float(min(spacing))
+    # Field-of-view centre convention: voxel centres span [0, (n-1) s]; use that box.
+    pts, t, n_up = _arch_centerline(2 * fov_c, Ra, 0.1 * fov[2], drift, step)
+    r = r_a * (1.0 + (taper - 1.0) * t + bulge * np.exp(-(((t - 0.12) / 0.06) ** 2)))
+    geometry = dict(arch_radius_mm=Ra, drift_mm=drift, bulge=bulge,
+                    radius_range_mm=[r.min(), r.max()], radius_mm=r_a)
+    return SweptTube(pts, r), geometry, n_up
 
 
 def tube(
@@ -838,13 +1011,13 @@ def tube(
     blur: float = 0.0,
     grid_rotation: Sequence[float] | None = None,
 ) -> Phantom:
-    """A filled vessel along an arch-shaped centreline, radius varying along it (an aortic arch).
+    """A filled vessel along an arch bent through 180 degrees, radius varying along it (an aorta).
 
-    The object is the union of balls of radius r(t) centred on the centreline (a canal surface):
-    ascending part (radius ``radius`` with a sinus-like bulge near its start), a half-circle arch,
-    and a descending part whose radius tapers to ``taper * radius``; both straight parts leave
-    the field of view at the low end of the third axis. The seed perturbs the radius profile and
-    the posterior drift of the arch.
+    The object is a swept-disk tube (see the tubes' section comment): an ascending part (radius
+    ``radius`` with a sinus-like bulge near its start), a half turn of radius ``arch_radius``
+    drifting along the second axis, and a descending part whose radius tapers to
+    ``taper * radius``; both straight parts leave the field of view through its low third-axis
+    face. The seed perturbs the radius profile and the drift.
 
     Parameters
     ----------
@@ -860,57 +1033,310 @@ def tube(
     -------
     Phantom
         Init: a cylinder along the ascending straight part (inside the field of view, below the
-        arch), of half the local vessel radius.
+        arch), of half the local vessel radius. ``params["geometry"]`` also holds the centreline
+        record, the end-point click ``ends_init`` and the five-point ``click``.
     """
     seed = _check_seed(seed)
     shape, spacing = _grid(shape, spacing, (96.0, 72.0, 96.0))
     noise, bias, blur = _common_checks(noise, bias, blur)
     taper = _check_fraction("taper", taper, 2.0)
+    sw, geometry, n_up = _arch_geometry(seed, shape, spacing, radius, taper, arch_radius)
     fov = np.asarray(shape) * np.asarray(spacing)
-    fov_c = _fov_center(shape, spacing)
-    r_a = 0.09 * fov[0] if radius is None else _check_fraction("radius", radius)
-    Ra = 0.25 * fov[0] if arch_radius is None else _check_fraction("arch_radius", arch_radius)
-    if r_a <= 0 or Ra <= r_a:
-        raise ConfigError(f"need 0 < radius ({r_a:g}) < arch_radius ({Ra:g})")
-    rng = _rng(seed, _GEOMETRY)
-    drift = float(rng.uniform(0.05, 0.12) * fov[1])
-    bulge = float(rng.uniform(0.1, 0.2))
-    step = 0.25 * float(min(spacing))
-    # Field-of-view centre convention: voxel centres span [0, (n-1) s]; use that box.
-    pts, t, n_up = _arch_centerline(2 * fov_c, Ra, 0.1 * fov[2], drift, step)
-    r = r_a * (1.0 + (taper - 1.0) * t + bulge * np.exp(-(((t - 0.12) / 0.06) ** 2)))
-    # Union of balls: F = min_s (|p - c_s| - r_s), updated inside each ball's bounding box only.
-    # F is capped a few voxels outside, so the partial-volume gradient sees no artificial jumps.
-    cap = 4.0 * float(max(spacing))
-    F = np.full(shape, cap, dtype=np.float64)
-    sp = np.asarray(spacing)
-    axes = [np.arange(n) * s for n, s in zip(shape, spacing)]
-    for p, rr in zip(pts, r):
-        lo = np.maximum(np.floor((p - rr - cap) / sp).astype(int), 0)
-        hi = np.minimum(np.ceil((p + rr + cap) / sp).astype(int) + 1, shape)
-        if np.any(hi <= lo):
-            continue
-        xs = axes[0][lo[0]:hi[0], None, None] - p[0]
-        ys = axes[1][None, lo[1]:hi[1], None] - p[1]
-        zs = axes[2][None, None, lo[2]:hi[2]] - p[2]
-        sub = F[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-        np.minimum(sub, np.sqrt(xs * xs + ys * ys + zs * zs) - rr, out=sub)
     # Init along the ascending part: from 15 % of the third-axis extent to just below the arch.
-    up_pts = pts[:n_up]
-    z_lo, z_hi = 0.15 * fov[2], up_pts[-1, 2] - 0.5 * r_a
+    up_pts, up_r = sw.points[:n_up], sw.radii[:n_up]
+    z_lo, z_hi = 0.15 * fov[2], up_pts[-1, 2] - 0.5 * geometry["radius_mm"]
     sel = (up_pts[:, 2] >= z_lo) & (up_pts[:, 2] <= z_hi)
-    a0, a1 = up_pts[sel][0], up_pts[sel][-1]
-    r_init = float(r[:n_up][sel].min()) / 2
-    init = _cylinder_init(a0, a1, r_init)
-    options = dict(radius=r_a, taper=taper, arch_radius=Ra, foreground=foreground,
+    init = _cylinder_init(up_pts[sel][0], up_pts[sel][-1], float(up_r[sel].min()) / 2)
+    options = dict(radius=geometry["radius_mm"], taper=taper, arch_radius=geometry["arch_radius_mm"],
+                   foreground=foreground, background=background, noise=noise, rician=rician,
+                   bias=bias, blur=blur, grid_rotation=grid_rotation)
+    return _tube_phantom("tube", seed, sw, shape, spacing, foreground=foreground,
+                         background=background, noise=noise, rician=rician, bias=bias, blur=blur,
+                         grid_rotation=grid_rotation, options=options, geometry=geometry,
+                         init=init)
+
+
+def _s_geometry(seed: int, shape: Sequence[int] | None, spacing: tuple[float, float, float],
+                radius: float, taper: float, bend_radius: float, bend: float, straight: float,
+                rotation: Sequence[float] | None
+                ) -> tuple[SweptTube, dict, tuple[int, int, int]]:
+    """The S vessel's swept tube, its geometry record and the grid shape (derived when None)."""
+    if radius <= 0 or bend_radius <= 0 or straight < 0:
+        raise ConfigError("radius and bend_radius must be positive, straight non-negative")
+    if radius * max(1.0, taper) >= 0.8 * bend_radius:
+        raise ConfigError(f"the radius ({radius:g} mm, x taper) must stay below 0.8 x bend_radius "
+                          f"({bend_radius:g} mm): the tube would fold onto itself")
+    if not 0 < bend <= 150:
+        raise ConfigError(f"bend must be in (0, 150] degrees, got {bend!r}")
+    rng = _rng(seed, _GEOMETRY)
+    theta = np.deg2rad(bend)
+    arc_len = bend_radius * theta
+    length = 2 * straight + 2 * arc_len
+    # Heading phi(s) from the third axis towards the first: 0, up to theta, back to 0, 0.
+    h = 0.02
+    s = np.arange(0.0, length + h / 2, h)
+    phi = np.clip(s - straight, 0, arc_len) / bend_radius \
+        - np.clip(s - straight - arc_len, 0, arc_len) / bend_radius
+    d = np.stack([np.sin(phi), np.zeros_like(phi), np.cos(phi)], axis=1)
+    pts = np.concatenate([[np.zeros(3)], np.cumsum(0.5 * (d[1:] + d[:-1]) * h, axis=0)])
+    if rotation is None:
+        angles = rng.uniform(-25.0, 25.0, 3)
+    else:
+        angles = _vector("rotation", rotation)
+    pts = pts @ Rotation.from_euler("xyz", angles, degrees=True).as_matrix().T
+    r_end = radius * taper
+    r = radius + (r_end - radius) * s / length
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    margin = max(radius, r_end) + 8.0
+    if shape is None:
+        fov = np.ceil((hi - lo + 2 * margin) / 8.0) * 8.0  # a round field of view (mm)
+        shape = tuple(max(8, int(round(f / sp))) for f, sp in zip(fov, spacing))
+    pts = pts - 0.5 * (lo + hi) + _fov_center(shape, spacing)
+    keep = max(1, int(round(0.25 * min(spacing) / h)))  # samples 1/4 voxel apart
+    idx = np.unique(np.r_[np.arange(0, len(s), keep), len(s) - 1])
+    geometry = dict(radius_mm=radius, end_radius_mm=r_end, bend_radius_mm=bend_radius,
+                    bend_deg=bend, straight_mm=straight, rotation=angles, length_mm=length)
+    return SweptTube(pts[idx], r[idx]), geometry, shape  # type: ignore[return-value]
+
+
+def s_vessel(
+    seed: int = 0,
+    *,
+    shape: Sequence[int] | None = None,
+    spacing: Sequence[float] = (1.0, 1.0, 1.0),
+    radius: float = 4.0,
+    taper: float = 1.0,
+    bend_radius: float = 20.0,
+    bend: float = 90.0,
+    straight: float = 15.0,
+    rotation: Sequence[float] | None = None,
+    foreground: float = 100.0,
+    background: float = 20.0,
+    noise: float = 0.05,
+    rician: bool = False,
+    bias: float = 0.0,
+    blur: float = 0.0,
+    grid_rotation: Sequence[float] | None = None,
+) -> Phantom:
+    """An S-shaped vessel wholly inside the volume: straight, two opposite bends, straight.
+
+    Its centreline runs ``straight`` mm, turns by ``bend`` degrees on a circle of radius
+    ``bend_radius``, turns back by as much, and runs ``straight`` mm again (a planar S), turned
+    by ``rotation`` so it is oblique to the grid. The radius varies linearly from ``radius`` to
+    ``taper * radius``; the ends are flat.
+
+    Parameters
+    ----------
+    shape : 3 ints, optional
+        Grid shape; default: the S's bounding box grown by its radius + 8 mm on every side,
+        rounded up to 8 mm, divided by the spacing (the tube centred in it).
+    radius : float
+        Radius at the start, mm.
+    taper : float
+        Ratio of the end radius to the start radius.
+    bend_radius : float
+        Radius of curvature of both bends, mm (above 1.25 x the largest radius).
+    bend : float
+        Angle of each bend, degrees.
+    straight : float
+        Length of each straight end part, mm.
+    rotation : 3 floats, optional
+        Euler angles (degrees, "xyz") of the S; default drawn from the seed in [-25, 25].
+    Other parameters are as in :func:`ball`.
+
+    Returns
+    -------
+    Phantom
+        Init: the end-point cylinder (``params["geometry"]["ends_init"]``); the geometry also
+        holds the centreline record (with ``volume_mm3_analytic`` = pi * integral r^2 ds), the
+        five-point ``click`` and the SNR.
+    """
+    seed = _check_seed(seed)
+    taper = _check_fraction("taper", taper, 2.0)
+    radius = _check_fraction("radius", radius)
+    bend_radius = _check_fraction("bend_radius", bend_radius)
+    straight = _check_fraction("straight", straight)
+    if shape is not None:
+        shape, spacing = _grid(shape, spacing, (0.0, 0.0, 0.0))
+    else:
+        spacing = _grid((8, 8, 8), spacing, (0.0, 0.0, 0.0))[1]
+    noise, bias, blur = _common_checks(noise, bias, blur)
+    sw, geometry, shape = _s_geometry(seed, shape, spacing, radius, taper, bend_radius,
+                                      float(bend), straight, rotation)
+    options = dict(radius=radius, taper=taper, bend_radius=bend_radius, bend=float(bend),
+                   straight=straight, rotation=geometry["rotation"], foreground=foreground,
                    background=background, noise=noise, rician=rician, bias=bias, blur=blur,
                    grid_rotation=grid_rotation)
-    geometry = dict(arch_radius_mm=Ra, drift_mm=drift, bulge=bulge, radius_range_mm=[r.min(),
-                    r.max()], centerline_mm=pts[:: max(1, len(pts) // 100)])
-    return _object_phantom("tube", seed, F, shape, spacing, foreground=foreground,
-                           background=background, noise=noise, rician=rician, bias=bias,
-                           blur=blur, grid_rotation=grid_rotation, options=options,
-                           geometry=geometry, init=init)
+    return _tube_phantom("s-vessel", seed, sw, shape, spacing, foreground=foreground,
+                         background=background, noise=noise, rician=rician, bias=bias, blur=blur,
+                         grid_rotation=grid_rotation, options=options, geometry=geometry,
+                         init=None)
+
+
+def _exit_geometry(seed: int, shape: tuple[int, int, int], spacing: tuple[float, float, float],
+                   radius: float) -> tuple[SweptTube, dict]:
+    """A straight tube entering through the low first-axis face, leaving through the high third."""
+    fov = 2 * _fov_center(shape, spacing)  # voxel centres span [0, fov]
+    rng = _rng(seed, _GEOMETRY)
+    j = rng.uniform(-0.05, 0.05, 3)
+    entry = np.array([0.0, (0.5 + j[0]) * fov[1], (0.3 + j[1]) * fov[2]])
+    exit_ = np.array([(0.62 + j[2]) * fov[0], (0.55 - j[0]) * fov[1], fov[2]])
+    d = _unit3(exit_ - entry)
+    # Check the faces the tube touches: its section on each face stays off the other faces.
+    for name, p, ax in (("entry", entry, 0), ("exit", exit_, 2)):
+        # On a face normal to axis `ax`, the section is an ellipse whose extent along axis m is
+        # r sqrt(1 - d_m^2) / |d_ax|.
+        half = radius * np.sqrt(np.maximum(1 - d**2, 0)) / abs(d[ax])
+        for m in range(3):
+            if m != ax and (p[m] - half[m] < 1.0 or p[m] + half[m] > fov[m] - 1.0):
+                raise ConfigError(f"radius {radius:g} mm is too large for this field of view: "
+                                  f"the tube's {name} section would reach another face")
+    ext = 2 * radius / max(abs(d[0]), abs(d[2])) + 4.0  # ends well outside the volume
+    geometry = dict(radius_mm=radius, direction=d, entry_mm=entry, exit_mm=exit_,
+                    faces=["i-", "k+"])
+    return _straight_tube(entry - ext * d, exit_ + ext * d, radius, spacing), geometry
+
+
+def _straight_tube(a: NDArray, b: NDArray, radius: float, spacing: Sequence[float]) -> SweptTube:
+    """A straight swept tube from ``a`` to ``b`` (mm), sampled 1/4 of the smallest voxel apart."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    n = int(np.ceil(np.linalg.norm(b - a) / (0.25 * float(min(spacing))))) + 1
+    return SweptTube(a + np.linspace(0.0, 1.0, n)[:, None] * (b - a), np.full(n, float(radius)))
+
+
+def _unit3(v: NDArray) -> NDArray:
+    return np.asarray(v, dtype=float) / float(np.linalg.norm(v))
+
+
+def exiting_tube(
+    seed: int = 0,
+    *,
+    shape: Sequence[int] | None = None,
+    spacing: Sequence[float] = (1.0, 1.0, 1.0),
+    radius: float = 5.0,
+    foreground: float = 100.0,
+    background: float = 20.0,
+    noise: float = 0.05,
+    rician: bool = False,
+    bias: float = 0.0,
+    blur: float = 0.0,
+    grid_rotation: Sequence[float] | None = None,
+) -> Phantom:
+    """A straight oblique tube that leaves the volume through two faces.
+
+    It enters through the low face of the first axis (i = 0) and leaves through the high face of
+    the third (k = n - 1); its flat ends lie outside the volume, so the truth touches exactly
+    those two faces (``params["geometry"]["faces"]``). The seed moves the crossing points by up
+    to 5 % of the field of view.
+
+    Parameters
+    ----------
+    shape : 3 ints, optional
+        Grid shape; default a 64 x 64 x 80 mm field of view divided by the spacing.
+    radius : float
+        Tube radius, mm.
+    Other parameters are as in :func:`ball`.
+
+    Returns
+    -------
+    Phantom
+        Init: the end-point cylinder over the middle 70 % of the in-volume centreline (whose
+        ends lie on the two faces).
+    """
+    seed = _check_seed(seed)
+    shape, spacing = _grid(shape, spacing, (64.0, 64.0, 80.0))
+    noise, bias, blur = _common_checks(noise, bias, blur)
+    radius = _check_fraction("radius", radius)
+    if radius <= 0:
+        raise ConfigError("radius must be positive")
+    sw, geometry = _exit_geometry(seed, shape, spacing, radius)
+    options = dict(radius=radius, foreground=foreground, background=background, noise=noise,
+                   rician=rician, bias=bias, blur=blur, grid_rotation=grid_rotation)
+    return _tube_phantom("exiting-tube", seed, sw, shape, spacing, foreground=foreground,
+                         background=background, noise=noise, rician=rician, bias=bias, blur=blur,
+                         grid_rotation=grid_rotation, options=options, geometry=geometry,
+                         init=None)
+
+
+def tube_truth(params: dict) -> SweptTube:
+    """Rebuild the swept tube whose inside is a tube phantom's truth, from its ``params``.
+
+    Parameters
+    ----------
+    params : dict
+        ``Phantom.params`` (or ``phantom.json``'s ``params``) of a ``tube``, ``s-vessel``,
+        ``exiting-tube`` or ``hollow-cylinder`` phantom.
+
+    Returns
+    -------
+    SweptTube
+        In mm of scaled index space; its arc length is ``params["geometry"]["centerline"]``'s
+        plus ``arc_offset_mm``.
+    """
+    kind = params["kind"]
+    seed, opts = int(params["seed"]), params["options"]
+    shape = tuple(int(n) for n in params["shape"])
+    spacing = tuple(float(s) for s in params["spacing"])
+    if kind == "tube":
+        return _arch_geometry(seed, shape, spacing, opts["radius"], opts["taper"],
+                              opts["arch_radius"])[0]
+    if kind == "s-vessel":
+        return _s_geometry(seed, shape, spacing, opts["radius"], opts["taper"],
+                           opts["bend_radius"], opts["bend"], opts["straight"],
+                           opts["rotation"])[0]
+    if kind == "exiting-tube":
+        return _exit_geometry(seed, shape, spacing, opts["radius"])[0]
+    if kind == "hollow-cylinder":
+        return _hollow_cylinder_tube(params["geometry"], spacing)
+    raise ConfigError(f"phantom kind {kind!r} is not a tube")
+
+
+def truth_profile(params: dict, arc_length: Sequence[float] | None = None,
+                  step: float = 1.0) -> dict[str, NDArray]:
+    """The truth's sections along its centreline, measured (see :meth:`SweptTube.profile`).
+
+    Measured, not analytic: rays in the plane normal to the true centreline, boundary crossings
+    by bisection on the truth's exact membership test (not on its voxels), clipped to the
+    volume's box. For these phantoms it agrees with the closed form (area ``pi r(s)^2``,
+    diameters ``2 r(s)``) except where the box cuts a section.
+
+    Parameters
+    ----------
+    params : dict
+        A tube phantom's ``params`` (see :func:`tube_truth`).
+    arc_length : floats, optional
+        Positions (mm) along the recorded in-volume centreline (``params["geometry"]
+        ["centerline"]["arc_length_mm"]``'s origin); default every ``step`` mm from ``step / 2``
+        to its length (the sections exactly at the ends are degenerate: a flat end's plane, or
+        the face a tube leaves through).
+    step : float
+        Spacing of the default positions, mm.
+
+    Returns
+    -------
+    dict
+        ``arc_length``, ``center`` (mm of scaled index space), ``center_world`` (world mm),
+        ``area`` (mm^2), ``equivalent_diameter``, ``min_diameter``, ``max_diameter`` (mm).
+    """
+    sw = tube_truth(params)
+    cl = params["geometry"]["centerline"]
+    if arc_length is None:
+        arc_length = np.arange(0.5 * step, float(cl["length_mm"]), step)
+    s = np.asarray(arc_length, dtype=float)
+    shape, spacing = params["shape"], params["spacing"]
+    prof = sw.profile(s + float(cl["arc_offset_mm"]), box=_voxel_box(shape, spacing))
+    affine = _affine(shape, spacing, params["options"].get("grid_rotation"))
+    c = prof["center"]
+    prof["center_world"] = (affine[:3, :3] @ (c / np.asarray(spacing)).T).T + affine[:3, 3]
+    prof["arc_length"] = s
+    del prof["s"]
+    return prof
+
+
+def _hollow_cylinder_tube(geometry: dict, spacing: Sequence[float]) -> SweptTube:
+    """The hollow cylinder's truth (inside the wall's mid-surface) as a straight swept tube."""
+    return _straight_tube(geometry["axis_start_mm"], geometry["axis_end_mm"],
+                          geometry["mid_radius_mm"], spacing)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1173,6 +1599,8 @@ PHANTOMS: dict[str, Callable[..., Phantom]] = {
     "blob": blob,
     "hollow-cylinder": hollow_cylinder,
     "tube": tube,
+    "s-vessel": s_vessel,
+    "exiting-tube": exiting_tube,
     "brain": brain,
 }
 

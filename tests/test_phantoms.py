@@ -22,6 +22,8 @@ SMALL = {
     "blob": dict(shape=(40, 40, 40)),
     "hollow-cylinder": dict(shape=(48, 48, 48), std=30.0),
     "tube": dict(shape=(48, 40, 48), spacing=(2.0, 2.0, 2.0)),
+    "s-vessel": dict(spacing=(2.0, 2.0, 2.0)),
+    "exiting-tube": dict(spacing=(2.0, 2.0, 2.0)),
     "brain": dict(shape=(60, 72, 60), spacing=(3.0, 3.0, 3.0)),
 }
 
@@ -32,7 +34,8 @@ SMALL = {
 
 
 def test_registry_has_every_kind():
-    assert set(P.PHANTOMS) == {"ball", "ellipsoid", "blob", "hollow-cylinder", "tube", "brain"}
+    assert set(P.PHANTOMS) == {"ball", "ellipsoid", "blob", "hollow-cylinder", "tube", "s-vessel",
+                               "exiting-tube", "brain"}
 
 
 @pytest.mark.parametrize("kind", sorted(SMALL))
@@ -246,6 +249,125 @@ def test_tube_is_one_vessel_with_varying_radius_and_init_inside():
     assert init.sum() > 500 and (init & ~t).sum() == 0
 
 
+def _on_centerline(ph: P.Phantom, points_voxels) -> tuple[np.ndarray, np.ndarray]:
+    """(distance to the true centreline in mm, true radius there) of points in voxel indices."""
+    sw = P.tube_truth(ph.params)
+    s, d = sw.nearest(np.asarray(points_voxels) * np.asarray(ph.spacing))
+    return d, sw.radius_at(s)
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (0.6, 0.6, 2.5)])
+def test_s_vessel_truth_volume_centreline_and_clicks(spacing):
+    ph = P.s_vessel(3, radius=4.0, spacing=spacing, noise=0.0)
+    g = ph.params["geometry"]
+    cl = g["centerline"]
+    L = 2 * 15.0 + 2 * 20.0 * np.pi / 2  # two straights, two quarter turns of radius 20
+    assert cl["closed"] and cl["length_mm"] == pytest.approx(L, rel=1e-3)
+    assert cl["volume_mm3_analytic"] == pytest.approx(np.pi * 16.0 * L, rel=1e-4)
+    # Voxel-centre sampling of the truth: within 1 % of pi r^2 L (1 mm) and 2 % (2.5 mm slices).
+    tol = 0.01 if spacing[2] == 1.0 else 0.02
+    assert ph.params["truth_volume_mm3"] == pytest.approx(np.pi * 16.0 * L, rel=tol)
+    t = ph.truth.astype(bool)
+    assert ndimage.label(t)[1] == 1 and not t[0].any() and not t[-1].any()
+    # The recorded centreline lies inside the truth mask (the voxel nearest each point, away from
+    # the flat ends, where rounding may step beyond the cap), its radius is the option's.
+    idx = np.rint(np.asarray(cl["points_voxels"])).astype(int)
+    away = (np.asarray(cl["arc_length_mm"]) > 3.0) & (np.asarray(cl["arc_length_mm"]) < L - 3.0)
+    assert away.sum() > 80 and t[tuple(idx[away].T)].all()
+    np.testing.assert_allclose(cl["radius_mm"], 4.0)
+    np.testing.assert_allclose(np.diff(cl["arc_length_mm"]),
+                               np.linalg.norm(np.diff(cl["points_mm"], axis=0), axis=1), rtol=1e-3)
+    # World mm = the affine applied to the voxel indices.
+    vox = np.c_[np.asarray(cl["points_voxels"]), np.ones(len(idx))]
+    np.testing.assert_allclose((ph.affine @ vox.T).T[:, :3], cl["points_world_mm"], atol=1e-6)
+    # Five clicks, each within half a radius of the true centreline (the shift is <= 0.2 r).
+    click = g["click"]
+    assert len(click["points_voxels"]) == 5
+    d, r = _on_centerline(ph, click["points_voxels"])
+    assert np.all(d <= 0.5 * r) and np.all(d <= P.CLICK_SHIFT * r + 1e-9) and d.max() > 0.01
+    # The shift is drawn in a ball: its part along the centreline does not move a point off it.
+    assert np.all(d <= np.asarray(click["shift_mm"]) + 1e-6)
+    np.testing.assert_allclose(np.asarray(click["radius_mm"]), 2.0)
+    # The end-point click: the centreline at 15 % and 85 % of its length, half the radius.
+    ends = ph.init
+    assert ends == g["ends_init"] and ends["shape"] == "cylinder"
+    d, _ = _on_centerline(ph, [ends["axis_start"], ends["axis_end"]])
+    assert d.max() < 0.01
+    a = np.asarray(ends["axis_start"]) * spacing
+    b = np.asarray(ends["axis_end"]) * spacing
+    sw = P.tube_truth(ph.params)
+    s_ab = sw.nearest(np.stack([a, b]))[0] - cl["arc_offset_mm"]
+    np.testing.assert_allclose(s_ab, [0.15 * L, 0.85 * L], atol=0.05)
+    assert g["ends_init_mm"]["radius"] == pytest.approx(2.0)
+
+
+def test_tube_phantoms_are_deterministic_with_their_clicks():
+    a, b, c = (P.s_vessel(s, spacing=(2.0, 2.0, 2.0)) for s in (5, 5, 6))
+    assert a.params["geometry"]["click"] == b.params["geometry"]["click"]
+    assert a.params["geometry"]["click"] != c.params["geometry"]["click"]
+    # The seed turns the S (rotation drawn in [-25, 25] degrees per axis).
+    assert a.params["options"]["rotation"] != c.params["options"]["rotation"]
+    assert max(abs(x) for x in a.params["options"]["rotation"]) <= 25.0
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (0.6, 0.6, 2.5)])
+def test_exiting_tube_touches_exactly_two_faces(spacing):
+    ph = P.exiting_tube(2, spacing=spacing, noise=0.0)
+    t = ph.truth.astype(bool)
+    touched = {f"{'ijk'[ax]}{'-+'[end]}" for ax in range(3) for end in (0, 1)
+               if np.take(t, (0, -1)[end], axis=ax).any()}
+    assert touched == {"i-", "k+"} == set(ph.params["geometry"]["faces"])
+    cl = ph.params["geometry"]["centerline"]
+    assert not cl["closed"] and "volume_mm3_analytic" not in cl
+    # The in-volume centreline ends on those faces (the box is half a voxel beyond the centres).
+    p0, p1 = np.asarray(cl["points_voxels"])[[0, -1]]
+    assert p0[0] == pytest.approx(-0.5, abs=0.05) and p1[2] == pytest.approx(t.shape[2] - 0.5,
+                                                                              abs=0.05)
+    # Straight: the truth's volume is pi r^2 times the length inside, up to the oblique ends.
+    r = ph.params["options"]["radius"]
+    assert ph.params["truth_volume_mm3"] == pytest.approx(np.pi * r * r * cl["length_mm"], rel=0.03)
+    with pytest.raises(ConfigError, match="too large"):
+        P.exiting_tube(0, radius=20.0, spacing=(2.0, 2.0, 2.0))
+
+
+def test_arch_is_smooth_and_turns_through_180_degrees():
+    ph = P.tube(0, noise=0.0)
+    cl = ph.params["geometry"]["centerline"]
+    pts = np.asarray(cl["points_mm"])
+    # No jump along the centreline (the arch used to start 2 x drift away from its legs).
+    steps = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    assert steps.max() < 1.05
+    t0, t1 = pts[3] - pts[0], pts[-1] - pts[-4]
+    assert np.dot(t0, t1) / np.linalg.norm(t0) / np.linalg.norm(t1) < -0.999
+    # Both legs leave through the k = 0 face: the in-volume centreline starts and ends there.
+    assert np.asarray(cl["points_voxels"])[[0, -1], 2] == pytest.approx([-0.5, -0.5], abs=0.05)
+    # A 5-point click and an end-point click on the true centreline.
+    d, r = _on_centerline(ph, ph.params["geometry"]["click"]["points_voxels"])
+    assert np.all(d <= 0.5 * r)
+
+
+def test_truth_profile_matches_the_closed_forms():
+    # The Table 7.2 cylinder is straight: sections pi R^2, diameters 2 R.
+    cyl = P.hollow_cylinder(0, shape=(48, 48, 48))
+    R = cyl.params["geometry"]["mid_radius_mm"]
+    prof = P.truth_profile(cyl.params, [1.0, 10.0, 30.0])
+    np.testing.assert_allclose(prof["area"], np.pi * R * R, rtol=1e-4)
+    for key in ("equivalent_diameter", "min_diameter", "max_diameter"):
+        np.testing.assert_allclose(prof[key], 2 * R, rtol=1e-4)
+    # A tapered S vessel: the measured section follows pi r(s)^2 through both bends.
+    ph = P.s_vessel(1, radius=4.0, taper=1.5, spacing=(2.0, 2.0, 2.0), noise=0.0)
+    cl = ph.params["geometry"]["centerline"]
+    prof = P.truth_profile(ph.params, step=10.0)
+    assert len(prof["arc_length"]) == int(np.ceil((cl["length_mm"] - 5.0) / 10.0))
+    r = 4.0 + 2.0 * prof["arc_length"] / cl["length_mm"]
+    np.testing.assert_allclose(prof["area"], np.pi * r * r, rtol=1e-3)
+    np.testing.assert_allclose(prof["max_diameter"], 2 * r, rtol=1e-3)
+    np.testing.assert_allclose(
+        prof["center_world"],
+        np.interp(prof["arc_length"], cl["arc_length_mm"], np.asarray(cl["points_world_mm"])[:, 0]
+                  )[:, None] * [1, 0, 0] + prof["center_world"] * [0, 1, 1], atol=0.02)
+
+
 @pytest.fixture(scope="module")
 def brains():
     kw = dict(spacing=(2.0, 2.0, 2.0), noise=0.0)
@@ -359,7 +481,7 @@ def test_cli_phantom_refuses_to_overwrite_and_bad_options(tmp_path, capsys):
     assert (out / "image.nii.gz").read_bytes() != before["image.nii.gz"]
     assert main(["phantom", "pyramid", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
-    assert "kinds: ball, ellipsoid, blob, hollow-cylinder, tube, brain" in err
+    assert "kinds: ball, ellipsoid, blob, hollow-cylinder, tube, s-vessel, exiting-tube, brain" in err
     assert main(["phantom", "ball", "--out", str(tmp_path / "y"), "--contrast", "pd"]) == 2
     assert "--contrast does not apply" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
