@@ -967,6 +967,14 @@ class _Admissible:
     Colin27 brain, the start's check stopped the growth at a tenth of the volume), and a step
     that shrinks the volume below :data:`MIN_VOLUME_FRACTION` of the start's is refused (a
     surface that collapses through itself turns no normal by 90 degrees in one step).
+
+    A tube's rings are checked too (any stage): each ring's signed area vector
+    ``1/2 integral sigma x sigma_u du`` must point along the tube (its component along the
+    centerline's tangent ``integral sigma_v du`` positive) and keep at least
+    :data:`MIN_VOLUME_FRACTION` of that component at the start. A ring that tilts over or
+    flattens turns the tube inside out there, and step by step no normal need turn by 90
+    degrees (measured: a curved tube in the region stages inverted half its rings, which a
+    volume density rewards with minus the volume they wrap over the background).
     """
 
     def __init__(self, start: SplineSurface, max_interval: NDArray, per_interval: int = 3,
@@ -982,16 +990,29 @@ class _Admissible:
         v = (rows + 0.5) / (per_interval * start.m2)
         self.basis = start.grid_basis(u, v)
         self.n0 = self._normals(start.params)
+        self.rings = None
+        if start.kind == "cylinder":
+            self.rings = start.grid_basis((np.arange(4 * start.m1) + 0.5) / (4 * start.m1), v)
+            self.min_area = MIN_VOLUME_FRACTION * self._ring_areas(start.params)
 
     def _normals(self, params: NDArray) -> NDArray:
         _, su, sv = self.basis.evaluate(self.start.control_points(params))
         return np.cross(sv, su)
+
+    def _ring_areas(self, params: NDArray) -> NDArray:
+        """Each ring's signed area along the tube's unit tangent, ``(nv,)``."""
+        s, su, sv = self.rings.evaluate(self.start.control_points(params))
+        tangent = sv.mean(axis=0)
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-300)
+        return np.einsum("vd,vd->v", 0.5 * np.cross(s, su).mean(axis=0), tangent)
 
     def __call__(self, params: NDArray) -> bool:
         if np.any(longest_intervals(self.start, params) > self.max_interval):
             return False
         if self.min_volume is not None and \
                 self.start.with_params(params).volume(order=4) < self.min_volume:
+            return False
+        if self.rings is not None and np.any(self._ring_areas(params) < self.min_area):
             return False
         return bool(np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0))
 
@@ -1025,7 +1046,8 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
         # A volume density's energy on its boundary is about the volume: r / 3 per mm^2 of a
         # sphere, r / 2 of a tube.
         scale = _volume_per_area(model) if region else 1.0
-        terms.append(BendingRegularizer(model, weight=REGULARIZATION * scale * area / r ** 2))
+        terms.append(BendingRegularizer(model, weight=REGULARIZATION * scale * area / r ** 2,
+                                        tube=region))
     if model.kind == "cylinder" and not region:
         # The open ends feel no flux: without tension they drift past the ends of the
         # structure. Tension makes a tube's length without edge support cost a fraction of what

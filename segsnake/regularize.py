@@ -24,7 +24,7 @@ from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, gauss_l
 
 __all__ = ["BendingRegularizer", "bending_matrix"]
 
-_CACHE: dict[tuple[str, int, int, int], NDArray] = {}
+_CACHE: dict[tuple[str, int, int, int, bool], NDArray] = {}
 
 
 def _reference(model: SplineSurface) -> SplineSurface:
@@ -33,9 +33,17 @@ def _reference(model: SplineSurface) -> SplineSurface:
     return SphereModel.unit(model.m1, model.m2)
 
 
-def bending_matrix(model: SplineSurface, order: int = 4) -> NDArray:
-    """The matrix ``K`` of the module docstring for the model's kind and size (cached)."""
-    key = (model.kind, model.m1, model.m2, order)
+def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> NDArray:
+    """The matrix ``K`` of the module docstring for the model's kind and size (cached).
+
+    ``tube`` (cylinders): the tube's own bending instead of the deviation from the nearest
+    straight elliptic cylinder, which pulls a curved vessel straight: each ring's deviation
+    from an ellipse bends as above, and the rings' ellipses (the centerline and the axes) pay
+    ``sum_l |third difference along l|^2 / (M1 M2)`` over the control rows, zero for a straight
+    elliptic cylinder and small for a tube that bends or turns its axes at a steady rate (an
+    arch), large for a kink.
+    """
+    key = (model.kind, model.m1, model.m2, order, tube)
     if key in _CACHE:
         return _CACHE[key]
     u, wu = gauss_legendre_grid(model.m1, order)
@@ -63,11 +71,29 @@ def bending_matrix(model: SplineSurface, order: int = 4) -> NDArray:
     hu, hv = 1.0 / model.m1, 1.0 / model.m2
     D = np.vstack([hu * hu * sampling(2, 0), np.sqrt(2.0) * hu * hv * sampling(1, 1),
                    hv * hv * sampling(0, 2)]) * np.tile(sw, 3)[:, None]
-    DR = D @ R
-    K = DR.T @ DR
+    if model.kind == "cylinder" and tube:
+        # Each control ring's part beyond its best ellipse bends like the surface above; the
+        # ellipses themselves (centre and axes, row by row) only pay for third differences
+        # along the tube (see :func:`_ellipse_projector`).
+        ellipses = _ellipse_projector(model.m1, model.m2 + 3)
+        DR = D @ (np.eye(A.shape[1]) - ellipses)
+        T = np.kron(np.eye(model.m1), np.diff(np.eye(model.m2 + 3), n=3, axis=0)) @ ellipses
+        K = DR.T @ DR + T.T @ T / (model.m1 * model.m2)
+    else:
+        DR = D @ R
+        K = DR.T @ DR
     K = 0.5 * (K + K.T)
     _CACHE[key] = K
     return K
+
+
+def _ellipse_projector(m1: int, n_rows: int) -> NDArray:
+    """Orthogonal projection of a cylinder's control grid (k-major, ``m1 x n_rows``) onto grids
+    whose every row ``c[., l]`` is ``centre_l + a_l cos(2 pi k / m1) + b_l sin(2 pi k / m1)``:
+    rings that are exact ellipses (phi_M reproduces {1, cos, sin}). Per coordinate."""
+    theta = 2 * np.pi * np.arange(m1) / m1
+    F = np.column_stack([np.ones(m1), np.cos(theta), np.sin(theta)])
+    return np.kron(F @ np.linalg.solve(F.T @ F, F.T), np.eye(n_rows))
 
 
 @dataclass
@@ -76,9 +102,10 @@ class BendingRegularizer:
 
     model: SplineSurface
     weight: float = 1.0
+    tube: bool = False
 
     def __post_init__(self) -> None:
-        self.K = bending_matrix(self.model)
+        self.K = bending_matrix(self.model, tube=self.tube)
 
     def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
         Kp = self.K @ params

@@ -76,6 +76,29 @@ def test_fold_check_rows_leave_out_the_pole_intervals():
     assert rows(CylinderModel.unit(6, 4)) == 12
 
 
+def test_a_tube_ring_may_not_tilt_over_or_flatten():
+    from segsnake.pipeline import _Admissible
+    from segsnake.surfaces import CylinderModel
+
+    tube = CylinderModel.from_axis([0, 0, 0], [0, 0, 40], 5.0, m1=8, m2=4)
+    check = _Admissible(tube, np.array([1e9, 1e9]))
+    grid = tube.params.reshape(8, 7, 3)
+
+    def with_row(l, factor):  # ring l scaled about its centre within its own plane
+        g = grid.copy()
+        centre = g[:, l].mean(axis=0)
+        g[:, l] = centre + factor * (g[:, l] - centre)
+        return g.reshape(-1, 3)
+
+    assert check(with_row(3, 0.5))  # a narrowing is fine
+    assert not check(with_row(3, 0.0))  # pinched: the rings near it keep < 2 % of their area
+    assert not check(with_row(3, -1.0))  # turned inside out (its normals turn too)
+    tilted = grid.copy()  # the middle ring tilted beyond the plane of the tube's axis
+    tilted[:, 3, 2] += 1.2 * tilted[:, 3, 0] * 40 / 4 / 5.0
+    assert not check(tilted.reshape(-1, 3))
+    assert _Admissible(tube, np.array([1e9, 1e9]), follow=True)(with_row(3, 0.5))
+
+
 def test_dark_object_on_bright_background_is_found_with_auto_polarity():
     ph = make_phantom("ball", seed=4, noise=0.2, foreground=20.0, background=100.0)
     res = _segment(ph, 9)
