@@ -438,11 +438,11 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                       "region", p.interim_tol)
         if model.kind == "cylinder" and config.m2 is None:
             # Now that the tube's calibre is known: rings a radius apart along it.
-            from segsnake.resample import resample
+            from segsnake.resample import interpolate_tube
 
             m2 = tube_rings(model)
             if m2 != model.m2:
-                model = resample(model, model.m1, m2)
+                model = interpolate_tube(model, m2)
     report("two classes", 0.5)
 
     for k in range(p.two_class_rounds + 1):
@@ -971,7 +971,7 @@ class _Admissible:
     A tube's rings are checked too (any stage): each ring's signed area vector
     ``1/2 integral sigma x sigma_u du`` must point along the tube (its component along the
     centerline's tangent ``integral sigma_v du`` positive) and keep at least
-    :data:`MIN_VOLUME_FRACTION` of that component at the start. A ring that tilts over or
+    :data:`MIN_VOLUME_FRACTION` of that component at the start (or the start's, if lower). A ring that tilts over or
     flattens turns the tube inside out there, and step by step no normal need turn by 90
     degrees (measured: a curved tube in the region stages inverted half its rings, which a
     volume density rewards with minus the volume they wrap over the background).
@@ -992,8 +992,12 @@ class _Admissible:
         self.n0 = self._normals(start.params)
         self.rings = None
         if start.kind == "cylinder":
-            self.rings = start.grid_basis((np.arange(4 * start.m1) + 0.5) / (4 * start.m1), v)
-            self.min_area = MIN_VOLUME_FRACTION * self._ring_areas(start.params)
+            self.rings = start.grid_basis((np.arange(4 * start.m1) + 0.5) / (4 * start.m1),
+                                          np.linspace(0.0, 1.0, per_interval * start.m2 + 1))
+            # (a ring that starts below that, e.g. the tip of a tube projected onto another
+            # M2, may only grow)
+            a0 = self._ring_areas(start.params)
+            self.min_area = np.minimum(MIN_VOLUME_FRACTION * a0, a0)
 
     def _normals(self, params: NDArray) -> NDArray:
         _, su, sv = self.basis.evaluate(self.start.control_points(params))

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from segsnake.priors import GRAM_ORDER, param_gram
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface
 
-__all__ = ["resample"]
+__all__ = ["resample", "interpolate_tube"]
 
 _KINDS = {"sphere": SphereModel, "cylinder": CylinderModel}
 
@@ -66,3 +66,20 @@ def resample(model: SplineSurface, m1: int, m2: int) -> SplineSurface:
     rhs_grid = np.einsum("uk,u,uvd,v,vl->kld", bu, wu, sigma, wv, bv, optimize=True)
     rhs = new.constraint.T @ rhs_grid.reshape(-1, 3)
     return new.with_params(np.linalg.solve(param_gram(new), rhs))
+
+
+def interpolate_tube(model: CylinderModel, m2: int) -> CylinderModel:
+    """A cylinder with ``m2`` intervals along that passes through ``model`` at its new control
+    points: ``c[k, l] = sigma(k / M1, l / m2)``, ``l = 0 .. m2``, and the two outer rows, which
+    only set the ends' slope, extrapolated linearly (``c[., -1] = 2 c[., 0] - c[., 1]``).
+
+    Unlike the L2 projection it cannot overshoot where the surface changes fast along the tube:
+    a tube whose end tapers to a tip keeps a tip with its rings the right way round (projected,
+    such a tip came back with its last rings inside out). Any straight elliptic cylinder is
+    reproduced exactly (the new space holds it, and interpolation keeps what it holds).
+    """
+    u = np.arange(model.m1) / model.m1
+    rows = model.evaluate(u, np.arange(m2 + 1) / m2)[0]  # (M1, m2 + 1, 3)
+    grid = np.concatenate([2 * rows[:, :1] - rows[:, 1:2], rows,
+                           2 * rows[:, -1:] - rows[:, -2:-1]], axis=1)
+    return CylinderModel(model.m1, m2, grid.reshape(-1, 3))  # k-major like the parameters

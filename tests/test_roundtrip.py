@@ -315,3 +315,25 @@ def test_init_in_batch_and_config_files(tmp_path):
     missing = missing_inputs(load_batch(str(tmp_path / "b.yaml"), check_files=False))
     assert [(m["role"], m["line"]) for m in missing] == [("init", 5)]
     shutil.rmtree(tmp_path / "out", ignore_errors=True)
+
+
+def test_interpolating_a_tube_to_other_rings_keeps_straight_cylinders_and_tips():
+    from segsnake.resample import interpolate_tube
+    from segsnake.surfaces import CylinderModel
+
+    straight = CylinderModel.from_axis([1, 2, 3], [10, -4, 20], 3.0, m1=8, m2=4).transformed(
+        np.diag([1.0, 2.0, 0.5]))
+    u, v = np.linspace(0, 1, 13), np.linspace(0, 1, 17)
+    for m2 in (3, 7, 11):
+        again = interpolate_tube(straight, m2)
+        assert again.m2 == m2
+        assert np.abs(again.evaluate(u, v)[0] - straight.evaluate(u, v)[0]).max() < 1e-10
+    # a tube whose end tapers to a tip passes through the same rings at the new knots
+    grid = straight.params.reshape(8, 7, 3).copy()
+    centre = grid[:, 1].mean(axis=0)
+    grid[:, 1] = centre + 0.05 * (grid[:, 1] - centre)
+    tip = CylinderModel(8, 4, grid.reshape(-1, 3))
+    finer = interpolate_tube(tip, 12)
+    knots = np.arange(13) / 12
+    assert np.abs(finer.evaluate(np.arange(8) / 8, knots)[0]
+                  - tip.evaluate(np.arange(8) / 8, knots)[0]).max() < 1e-10
