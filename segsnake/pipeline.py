@@ -502,6 +502,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 "contrast": contrast, "separation": contrast / intensity.sigma,
                 "boundary_fraction": on_step, "window": [list(window.lo), list(window.hi)],
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
+    if model.kind == "cylinder":
+        settings["ends"] = tube_ends(model, image.shape, sp)
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
 
@@ -804,6 +806,21 @@ def tube_rings(model: CylinderModel) -> int:
     centres = rings.mean(axis=0)
     length = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
     return axial_rings(length, float(np.linalg.norm(rings - centres, axis=2).mean()))
+
+
+def tube_ends(model: CylinderModel, shape: Sequence[int], spacing: Sequence[float]) -> list[str]:
+    """How each end of a tube (``v = 0``, then ``v = 1``) ended: ``"field of view"`` when its
+    ring's mean point lies within the padding beyond the volume's faces (:data:`FOV_PAD` voxels)
+    of a face, or outside, else ``"structure"`` (the image energy stopped it)."""
+    sp = np.asarray(spacing, dtype=float)
+    far = (np.asarray(shape) - 1) * sp
+    margin = FOV_PAD * sp
+    out = []
+    for ring in model.end_rings(4 * model.m1):
+        c = ring.mean(axis=0)
+        at_face = np.any(c <= margin) or np.any(c >= far - margin)
+        out.append("field of view" if at_face else "structure")
+    return out
 
 
 def _volume_per_area(model: SplineSurface) -> float:

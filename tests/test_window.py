@@ -86,3 +86,10 @@ def test_a_tube_that_leaves_the_volume_ends_on_its_faces():
     # the tube leaves through the x faces: each end ring's centre lies on one of them
     ends = sorted(float(r.mean(axis=0)[0]) for r in rings)
     assert ends[0] == pytest.approx(0.0, abs=1.5) and ends[1] == pytest.approx(shape[0] - 1, abs=1.5)
+    assert res.settings["ends"] == ["field of view", "field of view"]
+    # a tube that ends inside the volume: the image stopped it
+    closed = image.copy()
+    p = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij"), -1) - c
+    closed[np.abs(p @ d) > 14] = image[~truth].mean()
+    res = segment_volume(closed, (1.0, 1.0, 1.0), config)
+    assert res.settings["ends"] == ["structure", "structure"]
