@@ -489,8 +489,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         model = stage(model, density, f"two classes, round {k + 1}",
                       None if k == p.two_class_rounds - 1 else p.interim_tol)
         del density, shell
-        if k == p.two_class_rounds - 1 and config.coarse_to_fine and config.m1 is None \
-                and config.m2 is None:
+        # (a tube's rings follow its calibre instead: finer grids are for spheres)
+        if k == p.two_class_rounds - 1 and config.coarse_to_fine and model.kind == "sphere" \
+                and config.m1 is None and config.m2 is None:
             model = window.model_out(_finer_grids(run, window.model_in(model), p))
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
     mask = win.embed(inside)
