@@ -50,11 +50,16 @@ __all__ = [
     "total_memory_bytes",
     "memory_limit_bytes",
     "PIPELINE_BYTES_PER_VOXEL",
+    "REGION_BYTES_PER_VOXEL",
 ]
 
 # Peak bytes per voxel of load + edge map + lookup, measured by
 # benchmarks/bench_features.py (about 92 at 181 x 217 x 181) with a margin for the snake.
 PIPELINE_BYTES_PER_VOXEL = 160.0
+# The same for the region energy (filled objects), whose arrays live in a window around the
+# surface: at worst the whole volume, measured 34 bytes per voxel beyond the libraries (a ball
+# filling a 256^3 volume: 715 MB peak, 150 MB of it the libraries), with a margin.
+REGION_BYTES_PER_VOXEL = 48.0
 
 # Address space a run takes beyond its arrays after the memory check: libraries loaded later
 # (VTK, SimpleITK's writers), thread stacks and per-thread malloc arenas. Measured: 461 MB from the

@@ -422,9 +422,10 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         margin = p.window_mm
         while True:
             t0 = time.perf_counter()
-            w = density(window)
+            # (padded here: the unpadded density is freed before the lookup is built)
+            w = window.pad(density(window), FOV_PAD, FOV_DENSITY)
             run.timings["edge_map_s"] += time.perf_counter() - t0
-            model = window.model_out(run.region(window.model_in(start), w, name, tol, window))
+            model = window.model_out(run.region(window.model_in(start), w, name, tol))
             del w
             if not window.reaches(model, p.shell_mm):
                 return model
@@ -478,8 +479,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
             sub = image_s[w_win.slices]
             mu_out = rg.local_outside_mean(sub, shell, sp, p.outside_smooth_mm)
-            w = rg.blend(rg.two_class_density(sub, intensity, mu_out),
-                         rg.region_density(sub, intensity), mu_out, intensity)
+            w = rg.two_class_density(sub, intensity, mu_out)
+            w = rg.blend(w, rg.region_density(sub, intensity), mu_out, intensity, in_place=True)
+            del mu_out  # (its memory held the blend's weights)
             if p.edge_length_mm > 0:
                 w += rg.edge_density(image[w_win.slices], sp, polarity, contrast,
                                      p.edge_length_mm, p.edge_smooth_mm)
@@ -711,18 +713,16 @@ class _Run:
         self.history.append({"stage": name, **res})
         return model
 
-    def region(self, model, density, name: str, tol: float | None = None, window=None):
-        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`; an array on
-        ``window`` (a :class:`segsnake.window.Window`; the model in its coordinates), or a
-        lookup); ``self.lookup`` keeps the lookup."""
+    def region(self, model, density, name: str, tol: float | None = None):
+        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`): an array on a
+        window padded by :data:`FOV_PAD` voxels (:meth:`segsnake.window.Window.pad`; the model
+        in the window's coordinates), or a lookup; ``self.lookup`` keeps the lookup."""
         from segsnake.lookup import Lookup
 
         if isinstance(density, np.ndarray):
             t0 = time.perf_counter()
-            density = _Shifted(
-                Lookup.from_field(window.pad(density, FOV_PAD, FOV_DENSITY), self.sp,
-                                  divergence_of_gradient=False),
-                FOV_PAD * np.asarray(self.sp))
+            density = _Shifted(Lookup.from_field(density, self.sp, divergence_of_gradient=False),
+                               FOV_PAD * np.asarray(self.sp))
             self.timings["lookup_s"] += time.perf_counter() - t0
         self.lookup = density
         p = self.region_params

@@ -285,7 +285,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         names = _add_profile(out_dir, overwrite, names, _inputs(image_path, truth_path, config))
     centerline_file = config.centerline if isinstance(config.centerline, str) else None
     centerline = read_centerline(centerline_file) if centerline_file is not None else None
-    volume = load_volume(image_path, volume_index=config.volume, nan=config.nan)
+    volume = load_volume(image_path, volume_index=config.volume, nan=config.nan,
+                         bytes_per_voxel=_bytes_per_voxel(config))
     check_sizes(config, volume)
     truth = None
     truth_warnings: list[str] = []
@@ -311,10 +312,10 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         _with_image_name(exc, image_path)
         raise
     except MemoryError:
-        from segsnake.io import PIPELINE_BYTES_PER_VOXEL, fmt_bytes, memory_limit_bytes
+        from segsnake.io import fmt_bytes, memory_limit_bytes
 
         limit, source = memory_limit_bytes()
-        need = float(np.prod(volume.shape)) * PIPELINE_BYTES_PER_VOXEL
+        need = float(np.prod(volume.shape)) * _bytes_per_voxel(config)
         raise InputError(f"{image_path}: out of memory while segmenting its "
                          f"{'x'.join(map(str, volume.shape))} voxels (estimate "
                          f"{fmt_bytes(need)}, {source or 'the limit'} {fmt_bytes(limit)}); "
@@ -496,6 +497,14 @@ def _load_truth(path: str, volume, label: int | None, truth_label_option: str
         raise InputError(f"{path}: truth mask is not on the grid of {volume.path} "
                          f"(shape {truth.shape} vs {volume.shape} or a different affine)")
     return truth_mask(truth.data, label, path, truth_label_option)
+
+
+def _bytes_per_voxel(config) -> float:
+    """The up-front memory estimate per voxel of the run ``config`` asks for."""
+    from segsnake.io import PIPELINE_BYTES_PER_VOXEL, REGION_BYTES_PER_VOXEL
+    from segsnake.pipeline import region_energy
+
+    return REGION_BYTES_PER_VOXEL if region_energy(config) else PIPELINE_BYTES_PER_VOXEL
 
 
 def _prior_energy(config):
