@@ -3,7 +3,11 @@
 :func:`segment_volume` is the numerical core (arrays in, model and mask out, no files);
 :func:`segsnake.runner.segment_file` wraps it with loading, validation and the outputs.
 
-How the surface gets onto the boundary (design.md, "Where the minimum sits"):
+A filled object, sphere or tube (``energy: auto`` with ``feature: edge``), is segmented with the
+region energy (:func:`_segment_region`; docs/design.md, "The region energy"). The edge stages
+below serve thin sheets (``feature: surface``) and ``energy: edge``.
+
+How the edge stages get the surface onto the boundary (design.md, "Where the minimum sits"):
 
 1. *Edges.* The detector's edge map (``features.edge_map``), minus what cannot be the boundary:
    edges enclosed by the initial surface (the start lies inside the object, so they are internal
@@ -993,10 +997,11 @@ class _Admissible:
     A tube's rings are checked too (any stage): each ring's signed area vector
     ``1/2 integral sigma x sigma_u du`` must point along the tube (its component along the
     centerline's tangent ``integral sigma_v du`` positive) and keep at least
-    :data:`MIN_VOLUME_FRACTION` of that component at the start (or the start's, if lower). A ring that tilts over or
-    flattens turns the tube inside out there, and step by step no normal need turn by 90
-    degrees (measured: a curved tube in the region stages inverted half its rings, which a
-    volume density rewards with minus the volume they wrap over the background).
+    :data:`MIN_VOLUME_FRACTION` of that component at the start (or the start's, if lower). A
+    ring that tilts over or flattens turns the tube inside out there, and step by step no
+    normal need turn by 90 degrees (measured: a curved tube in the region stages inverted half
+    its rings, which a volume density rewards with minus the volume they wrap over the
+    background).
     """
 
     def __init__(self, start: SplineSurface, max_interval: NDArray, per_interval: int = 3,
