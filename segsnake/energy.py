@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from segsnake.surfaces import SplineSurface
 
 __all__ = ["Sampler", "Energy", "FluxTerm", "AxialTension", "SumEnergy", "flux_integrand_grads",
-           "cap_nodes"]
+           "cap_nodes", "RingBarrier"]
 
 
 class Sampler(Protocol):
@@ -209,3 +209,62 @@ class AxialTension:
         grad_C = np.broadcast_to((self.ends[1] - self.ends[0])[None, :, None] * e / self.model.m1,
                                  C.shape)
         return self.weight * length, self.weight * self.model.grid_gradient_to_params(grad_C)
+
+
+@dataclass
+class RingBarrier:
+    """A tube's rings may narrow but not close: ``weight * sum_j psi(a_j / a0_j)``.
+
+    ``a_j`` is the signed area of the ring ``sigma(., v_j)`` along the tube's tangent,
+    ``T . 1/2 integral sigma x sigma_u du`` with ``T`` the unit vector of ``integral sigma_v du``
+    (rings at ``per_interval`` rows per knot interval, ends included), ``a0_j`` its value for
+    ``start`` (rings that start at or below zero are left out), and
+    ``psi(x) = (floor / x - 1)^2`` below ``floor``, 0 above: smooth, zero for any ring above
+    ``floor`` of its start's area, and growing without bound as a ring closes. (A refusal of
+    every step that shrinks a ring below a floor stalled whole stages when one end ring wanted
+    to close: measured on a perturbed trachea click, 131 refused steps, Dice 0.18.)
+    """
+
+    model: SplineSurface
+    start: NDArray
+    weight: float = 1.0
+    floor: float = 0.1
+    per_interval: int = 3
+
+    def __post_init__(self) -> None:
+        nu = 4 * self.model.m1
+        self.basis = self.model.grid_basis((np.arange(nu) + 0.5) / nu,
+                                           np.linspace(0.0, 1.0, self.per_interval * self.model.m2 + 1))
+        self.a0 = self.areas(self.start)[0]
+
+    def areas(self, params: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray, tuple]:
+        """``a (nv,)``, the area vectors ``A``, the unit tangents ``T``, ``|t|`` and the grid."""
+        s, su, sv = self.basis.evaluate(self.model.control_points(params))
+        A = 0.5 * np.cross(s, su).mean(axis=0)
+        t = sv.mean(axis=0)
+        tn = np.maximum(np.linalg.norm(t, axis=1), 1e-300)
+        T = t / tn[:, None]
+        return np.einsum("vd,vd->v", A, T), A, T, tn, (s, su)
+
+    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+        a, A, T, tn, (s, su) = self.areas(params)
+        ok = self.a0 > 0
+        x = np.where(ok, a / np.where(ok, self.a0, 1.0), np.inf)
+        active = x < self.floor
+        if not np.any(active):
+            return 0.0, np.zeros_like(params)
+        if np.any(x[active] <= 0):
+            return float("inf"), np.zeros_like(params)
+        xa = np.where(active, x, self.floor)
+        value = self.weight * float(np.sum(np.where(active, (self.floor / xa - 1) ** 2, 0.0)))
+        # dE/da_j, then through a = T . A and T = t / |t|
+        c = np.where(active, self.weight * 2 * (self.floor / xa - 1) * (-self.floor / xa ** 2)
+                     / np.where(ok, self.a0, 1.0), 0.0)
+        dA = c[:, None] * T  # (nv, 3)
+        dt = c[:, None] * (A - a[:, None] * T) / tn[:, None]
+        nu = s.shape[0]
+        g_s = 0.5 / nu * np.cross(su, dA[None])
+        g_su = 0.5 / nu * np.cross(dA[None], s)
+        g_sv = np.broadcast_to(dt[None] / nu, s.shape)
+        grad_C = self.basis.adjoint(g_s, g_su, np.ascontiguousarray(g_sv))
+        return value, self.model.grid_gradient_to_params(grad_C)

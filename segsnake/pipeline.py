@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from segsnake.distance import distance_to
-from segsnake.energy import AxialTension, FluxTerm, SumEnergy
+from segsnake.energy import AxialTension, FluxTerm, RingBarrier, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.frames import flux_frame
 from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
@@ -1021,10 +1021,11 @@ class _Admissible:
         if start.kind == "cylinder":
             self.rings = start.grid_basis((np.arange(4 * start.m1) + 0.5) / (4 * start.m1),
                                           np.linspace(0.0, 1.0, per_interval * start.m2 + 1))
-            # (a ring that starts below that, e.g. the tip of a tube projected onto another
-            # M2, may only grow)
+            # (a ring that starts at or below zero may only grow; in the region stages the
+            # energy's RingBarrier keeps the others from closing)
             a0 = self._ring_areas(start.params)
-            self.min_area = np.minimum(MIN_VOLUME_FRACTION * a0, a0)
+            self.min_area = np.minimum(MIN_VOLUME_FRACTION * a0, a0) if not follow else \
+                np.minimum(0.0, a0)
 
     def _normals(self, params: NDArray) -> NDArray:
         _, su, sv = self.basis.evaluate(self.start.control_points(params))
@@ -1079,6 +1080,12 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
         scale = _volume_per_area(model) if region else 1.0
         terms.append(BendingRegularizer(model, weight=REGULARIZATION * scale * area / r ** 2,
                                         tube=region))
+    if model.kind == "cylinder" and region:
+        # A ring may narrow but not close: the barrier costs a ring at a twentieth of its
+        # start's area about as much as the volume of its slab of the tube.
+        barrier = RingBarrier(model, model.params)
+        barrier.weight = _volume_per_area(model) * abs(model.area(order=4)) / len(barrier.a0)
+        terms.append(barrier)
     if model.kind == "cylinder" and not region:
         # The open ends feel no flux: without tension they drift past the ends of the
         # structure. Tension makes a tube's length without edge support cost a fraction of what

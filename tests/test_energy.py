@@ -144,3 +144,28 @@ def test_closed_cylinder_gradient_matches_central_differences(seed):
     _, grad = energy.value_and_grad(model.params)
     fd = central_difference_gradient(energy, model.params)
     assert np.linalg.norm(grad - fd) / np.linalg.norm(fd) < 1e-5
+
+
+def test_ring_barrier_is_zero_until_a_ring_narrows_past_its_floor_and_exact():
+    from segsnake.energy import RingBarrier
+
+    tube = CylinderModel.from_axis([0, 0, 0], [0, 0, 30], 4.0, m1=8, m2=4)
+    barrier = RingBarrier(tube, tube.params, weight=2.0)
+
+    def narrowed(factor):  # control row 1 scaled about its centre
+        g = tube.params.reshape(8, 7, 3).copy()
+        centre = g[:, 1].mean(axis=0)
+        g[:, 1] = centre + factor * (g[:, 1] - centre)
+        return g.reshape(-1, 3)
+
+    assert barrier.value_and_grad(tube.params)[0] == 0.0
+    assert barrier.value_and_grad(narrowed(0.6))[0] == 0.0  # narrower, above a tenth of its area
+    pinched = narrowed(0.2)
+    value, grad = barrier.value_and_grad(pinched)
+    assert value > 1.0
+    fd = central_difference_gradient(barrier, pinched)
+    assert np.linalg.norm(grad - fd) / np.linalg.norm(fd) < 1e-6
+    # descending the barrier opens the ring
+    opened = pinched - 1e-3 * grad
+    assert barrier.value_and_grad(opened)[0] < value
+    assert barrier.value_and_grad(narrowed(0.0))[0] > 1e6  # pinched shut: without bound
