@@ -806,9 +806,11 @@ def _model_radius(model: SplineSurface) -> float:
 def tube_rings(model: CylinderModel) -> int:
     """M2 for a tube (:func:`segsnake.surfaces.axial_rings`) from its centerline (the rings'
     mean points, at 4 samples per knot interval) and its mean distance from it."""
+    from segsnake.profile import ring_centroids
+
     nu, v = 4 * model.m1, np.linspace(0.0, 1.0, 4 * model.m2 + 1)
     rings, _, _ = model.evaluate(np.arange(nu) / nu, v)  # (nu, nv, 3)
-    centres = rings.mean(axis=0)
+    centres = ring_centroids(model, v)[0]
     length = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
     return axial_rings(length, float(np.linalg.norm(rings - centres, axis=2).mean()))
 
@@ -817,15 +819,13 @@ def tube_ends(model: CylinderModel, shape: Sequence[int], spacing: Sequence[floa
     """How each end of a tube (``v = 0``, then ``v = 1``) ended: ``"field of view"`` when its
     ring's mean point lies within the padding beyond the volume's faces (:data:`FOV_PAD` voxels)
     of a face, or outside, else ``"structure"`` (the image energy stopped it)."""
+    from segsnake.profile import ring_centroids
+
     sp = np.asarray(spacing, dtype=float)
     far = (np.asarray(shape) - 1) * sp
     margin = FOV_PAD * sp
-    out = []
-    for ring in model.end_rings(4 * model.m1):
-        c = ring.mean(axis=0)
-        at_face = np.any(c <= margin) or np.any(c >= far - margin)
-        out.append("field of view" if at_face else "structure")
-    return out
+    return ["field of view" if np.any(c <= margin) or np.any(c >= far - margin) else "structure"
+            for c in ring_centroids(model, np.array([0.0, 1.0]))[0]]
 
 
 def _volume_per_area(model: SplineSurface) -> float:
@@ -1019,11 +1019,11 @@ class _Admissible:
         self.n0 = self._normals(start.params)
         self.rings = None
         if start.kind == "cylinder":
-            self.rings = start.grid_basis((np.arange(4 * start.m1) + 0.5) / (4 * start.m1),
-                                          np.linspace(0.0, 1.0, per_interval * start.m2 + 1))
+            # The rings' signed areas, as the region stages' barrier measures them.
+            self.rings = RingBarrier(start, start.params, per_interval=per_interval)
             # (a ring that starts at or below zero may only grow; in the region stages the
             # energy's RingBarrier keeps the others from closing)
-            a0 = self._ring_areas(start.params)
+            a0 = self.rings.a0
             self.min_area = np.minimum(MIN_VOLUME_FRACTION * a0, a0) if not follow else \
                 np.minimum(0.0, a0)
 
@@ -1031,20 +1031,13 @@ class _Admissible:
         _, su, sv = self.basis.evaluate(self.start.control_points(params))
         return np.cross(sv, su)
 
-    def _ring_areas(self, params: NDArray) -> NDArray:
-        """Each ring's signed area along the tube's unit tangent, ``(nv,)``."""
-        s, su, sv = self.rings.evaluate(self.start.control_points(params))
-        tangent = sv.mean(axis=0)
-        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-300)
-        return np.einsum("vd,vd->v", 0.5 * np.cross(s, su).mean(axis=0), tangent)
-
     def __call__(self, params: NDArray) -> bool:
         if np.any(longest_intervals(self.start, params) > self.max_interval):
             return False
         if self.min_volume is not None and \
                 self.start.with_params(params).volume(order=4) < self.min_volume:
             return False
-        if self.rings is not None and np.any(self._ring_areas(params) < self.min_area):
+        if self.rings is not None and np.any(self.rings.areas(params)[0] < self.min_area):
             return False
         return bool(np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0))
 
@@ -1083,9 +1076,9 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
     if model.kind == "cylinder" and region:
         # A ring may narrow but not close: the barrier costs a ring at a twentieth of its
         # start's area about as much as the volume of its slab of the tube.
-        barrier = RingBarrier(model, model.params)
-        barrier.weight = _volume_per_area(model) * abs(model.area(order=4)) / len(barrier.a0)
-        terms.append(barrier)
+        rings = RingBarrier.per_interval * model.m2 + 1  # the rows it measures
+        slab = _volume_per_area(model) * abs(model.area(order=4)) / rings
+        terms.append(RingBarrier(model, model.params, weight=slab))
     if model.kind == "cylinder" and not region:
         # The open ends feel no flux: without tension they drift past the ends of the
         # structure. Tension makes a tube's length without edge support cost a fraction of what
