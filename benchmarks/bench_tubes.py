@@ -29,7 +29,7 @@ Columns: Dice from each initialisation (from ``--truth``); the largest relative 
 equivalent diameter along the length, from the run's ``profile.csv`` against the truth's measured
 sections (:func:`segsnake.phantoms.truth_profile`; each profile row is matched to the true
 centreline by its centreline point; "n/a" when the run wrote no ``profile.csv``); the end
-condition (what ``snake.json`` reports about the tube's ends if it does, else the last stage's
+condition (``snake.json``'s ``settings.ends`` when the run reports them, else the last stage's
 stop; and the volume faces the mask touches, with the truth's); wall time of the command.
 ``--perturb EPS`` also runs every command with its flux gradients multiplied by
 ``1 + EPS * N(0, 1)`` (``perturbed_cli.py``, the mechanism of ``bench_robustness.py``).
@@ -247,20 +247,6 @@ def profile_error(prof: dict | None, params: dict) -> dict:
     return res
 
 
-def _find_end_condition(doc: Any) -> Any:
-    """A value in ``snake.json`` that reports how the tube's ends ended, if there is one."""
-    if isinstance(doc, dict):
-        for k, v in doc.items():
-            kl = k.lower()
-            if kl in ("ends", "end_condition", "end_conditions") or ("end" in kl and "condition" in kl):
-                return v
-        for v in doc.values():
-            found = _find_end_condition(v)
-            if found is not None:
-                return found
-    return None
-
-
 def end_condition(out: Path, truth_faces: list[str]) -> dict:
     """What the run says about its ends, its last stage's stop, and the faces its mask touches."""
     import nibabel as nib
@@ -269,7 +255,7 @@ def end_condition(out: Path, truth_faces: list[str]) -> dict:
     snake = out / "snake.json"
     if snake.is_file():
         doc = json.loads(snake.read_text())
-        found = _find_end_condition(doc)
+        found = (doc.get("settings") or {}).get("ends")  # snake.json's tube ends
         if found is not None:
             res["reported"] = found
         hist = doc.get("energy_history") or []
