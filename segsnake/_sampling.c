@@ -10,7 +10,8 @@
  * outside; a NaN or infinite coordinate gives NaN outputs. The coefficients are mirror-padded
  * by PAD = 2 on every side, so every index below is inside the padded array.
  *
- * Plain C on Python buffers (no numpy headers; the buffers' format must be float64); the GIL
+ * Plain C on Python buffers (no numpy headers; float64 buffers, the coefficients float64 or
+ * float32); the GIL
  * is released, so blocks of points run in parallel threads.
  */
 #define PY_SSIZE_T_CLEAN
@@ -31,66 +32,73 @@ static void weights(double u, double w[4], double dw[4])
     dw[3] = 0.5 * u2;
 }
 
-static void sample_points(const double *coef, const Py_ssize_t pshape[3], const Py_ssize_t shape[3],
-                          const double spacing[3], const double *pts, Py_ssize_t n,
-                          double *g_out, double *grad_out)
-{
-    const Py_ssize_t sy = pshape[2], sx = pshape[1] * pshape[2];
-    for (Py_ssize_t k = 0; k < n; k++) {
-        const double *p = pts + 3 * k;
-        double w[3][4], dw[3][4], scale[3];
-        Py_ssize_t i0[3];
-        int bad = 0;
-        for (int d = 0; d < 3; d++) {
-            double hi = (double)(shape[d] - 1);
-            double t = p[d] / spacing[d];
-            if (!isfinite(t)) { /* NaN or Inf in, NaN out (a clamped value would look plausible) */
-                bad = 1;
-                t = 0.0;
-            }
-            /* The gradient component is 0 along an axis where the point is clamped. */
-            scale[d] = (t >= 0.0 && t <= hi) ? 1.0 / spacing[d] : 0.0;
-            t = t < 0.0 ? 0.0 : (t > hi ? hi : t);
-            double f = floor(t), top = hi - 1.0 > 0.0 ? hi - 1.0 : 0.0;
-            if (f > top)
-                f = top;
-            i0[d] = (Py_ssize_t)f;
-            weights(t - f, w[d], dw[d]);
-        }
-        if (bad) {
-            g_out[k] = NAN;
-            grad_out[3 * k] = grad_out[3 * k + 1] = grad_out[3 * k + 2] = NAN;
-            continue;
-        }
-        /* Padded index of the first of the four samples along each axis: i0 - 1 + PAD. */
-        const double *base = coef + (i0[0] + 1) * sx + (i0[1] + 1) * sy + (i0[2] + 1);
-        double g = 0.0, gx = 0.0, gy = 0.0, gz = 0.0;
-        for (int a = 0; a < 4; a++) {
-            double czy = 0.0, czdy = 0.0, cdzy = 0.0;
-            for (int b = 0; b < 4; b++) {
-                const double *c = base + a * sx + b * sy;
-                double cz = c[0] * w[2][0] + c[1] * w[2][1] + c[2] * w[2][2] + c[3] * w[2][3];
-                double cdz = c[0] * dw[2][0] + c[1] * dw[2][1] + c[2] * dw[2][2] + c[3] * dw[2][3];
-                czy += cz * w[1][b];
-                czdy += cz * dw[1][b];
-                cdzy += cdz * w[1][b];
-            }
-            g += czy * w[0][a];
-            gx += czy * dw[0][a];
-            gy += czdy * w[0][a];
-            gz += cdzy * w[0][a];
-        }
-        g_out[k] = g;
-        grad_out[3 * k] = gx * scale[0];
-        grad_out[3 * k + 1] = gy * scale[1];
-        grad_out[3 * k + 2] = gz * scale[2];
-    }
+#define DEFINE_SAMPLE_POINTS(NAME, CTYPE) \
+static void NAME(const CTYPE *coef, const Py_ssize_t pshape[3], const Py_ssize_t shape[3], \
+                          const double spacing[3], const double *pts, Py_ssize_t n, \
+                          double *g_out, double *grad_out) \
+{ \
+    const Py_ssize_t sy = pshape[2], sx = pshape[1] * pshape[2]; \
+    for (Py_ssize_t k = 0; k < n; k++) { \
+        const double *p = pts + 3 * k; \
+        double w[3][4], dw[3][4], scale[3]; \
+        Py_ssize_t i0[3]; \
+        int bad = 0; \
+        for (int d = 0; d < 3; d++) { \
+            double hi = (double)(shape[d] - 1); \
+            double t = p[d] / spacing[d]; \
+            if (!isfinite(t)) { /* NaN or Inf in, NaN out (a clamped value would look plausible) */ \
+                bad = 1; \
+                t = 0.0; \
+            } \
+            /* The gradient component is 0 along an axis where the point is clamped. */ \
+            scale[d] = (t >= 0.0 && t <= hi) ? 1.0 / spacing[d] : 0.0; \
+            t = t < 0.0 ? 0.0 : (t > hi ? hi : t); \
+            double f = floor(t), top = hi - 1.0 > 0.0 ? hi - 1.0 : 0.0; \
+            if (f > top) \
+                f = top; \
+            i0[d] = (Py_ssize_t)f; \
+            weights(t - f, w[d], dw[d]); \
+        } \
+        if (bad) { \
+            g_out[k] = NAN; \
+            grad_out[3 * k] = grad_out[3 * k + 1] = grad_out[3 * k + 2] = NAN; \
+            continue; \
+        } \
+        /* Padded index of the first of the four samples along each axis: i0 - 1 + PAD. */ \
+        const CTYPE *base = coef + (i0[0] + 1) * sx + (i0[1] + 1) * sy + (i0[2] + 1); \
+        double g = 0.0, gx = 0.0, gy = 0.0, gz = 0.0; \
+        for (int a = 0; a < 4; a++) { \
+            double czy = 0.0, czdy = 0.0, cdzy = 0.0; \
+            for (int b = 0; b < 4; b++) { \
+                const CTYPE *c = base + a * sx + b * sy; \
+                double cz = c[0] * w[2][0] + c[1] * w[2][1] + c[2] * w[2][2] + c[3] * w[2][3]; \
+                double cdz = c[0] * dw[2][0] + c[1] * dw[2][1] + c[2] * dw[2][2] + c[3] * dw[2][3]; \
+                czy += cz * w[1][b]; \
+                czdy += cz * dw[1][b]; \
+                cdzy += cdz * w[1][b]; \
+            } \
+            g += czy * w[0][a]; \
+            gx += czy * dw[0][a]; \
+            gy += czdy * w[0][a]; \
+            gz += cdzy * w[0][a]; \
+        } \
+        g_out[k] = g; \
+        grad_out[3 * k] = gx * scale[0]; \
+        grad_out[3 * k + 1] = gy * scale[1]; \
+        grad_out[3 * k + 2] = gz * scale[2]; \
+    } \
 }
 
-/* A C-contiguous float64 buffer of exactly `count` values (PyBUF_FORMAT: an int64 array of
- * the same size is refused, not read as doubles). 0 on success, -1 with an exception set. */
-static int get_doubles(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count,
-                       const char *name)
+/* The coefficients in float64, or in float32 (half the memory of the region stages' lookups:
+ * issue 18); the arithmetic is float64 either way. */
+DEFINE_SAMPLE_POINTS(sample_points_f64, double)
+DEFINE_SAMPLE_POINTS(sample_points_f32, float)
+
+/* A C-contiguous buffer of exactly `count` values (any count when negative) of format `want`
+ * ("d": float64, "f": float32; PyBUF_FORMAT: an int64 array of the same size is refused, not
+ * read as doubles). 0 on success, -1 with an exception set. */
+static int get_values(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count,
+                      const char *want, const char *name)
 {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (PyObject_GetBuffer(obj, view, flags) < 0)
@@ -98,20 +106,42 @@ static int get_doubles(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t 
     const char *f = view->format ? view->format : "B";
     if ((f[0] == '<' || f[0] == '=' || f[0] == '@') && f[1] != '\0')
         f++;
-    if (strcmp(f, "d") != 0 || view->itemsize != (Py_ssize_t)sizeof(double)
-        || (count >= 0 && view->len != count * (Py_ssize_t)sizeof(double))) {
-        PyErr_Format(PyExc_ValueError, "%s: expected a C-contiguous float64 array of %zd values",
-                     name, count);
+    Py_ssize_t item = want[0] == 'd' ? (Py_ssize_t)sizeof(double) : (Py_ssize_t)sizeof(float);
+    if (strcmp(f, want) != 0 || view->itemsize != item || (count >= 0 && view->len != count * item)) {
+        PyErr_Format(PyExc_ValueError, "%s: expected a C-contiguous %s array of %zd values",
+                     name, want[0] == 'd' ? "float64" : "float32", count);
         PyBuffer_Release(view);
         return -1;
     }
     return 0;
 }
 
+static int get_doubles(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count,
+                       const char *name)
+{
+    return get_values(obj, view, writable, count, "d", name);
+}
+
+/* "f" for a float32 buffer, else "d" (its check then says what was expected); NULL with an
+ * exception set when the object has no buffer. */
+static const char *coef_format(PyObject *obj)
+{
+    Py_buffer view = {0};
+    if (PyObject_GetBuffer(obj, &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return NULL;
+    const char *f = view.format ? view.format : "B";
+    if ((f[0] == '<' || f[0] == '=' || f[0] == '@') && f[1] != '\0')
+        f++;
+    const char *kind = strcmp(f, "f") == 0 ? "f" : "d";
+    PyBuffer_Release(&view);
+    return kind;
+}
+
 PyDoc_STRVAR(sample_doc,
 "sample(coef, padded_shape, shape, spacing, points, g_out, grad_out)\n\n"
 "Fill g_out (N,) and grad_out (N, 3) with the spline's value and gradient at points (N, 3).\n"
-"All arrays are C-contiguous float64; coef is mirror-padded by 2 (see lookup.Lookup).");
+"All arrays are C-contiguous float64 except coef, float64 or float32; coef is mirror-padded by 2\n"
+"(see lookup.Lookup).");
 
 static PyObject *py_sample(PyObject *self, PyObject *args)
 {
@@ -134,7 +164,8 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
         }
         size *= ps[d];
     }
-    if (get_doubles(coef_obj, &coef, 0, size, "coef") < 0)
+    const char *kind = coef_format(coef_obj);
+    if (kind == NULL || get_values(coef_obj, &coef, 0, size, kind, "coef") < 0)
         goto done;
     if (get_doubles(pts_obj, &pts, 0, -1, "points") < 0)
         goto done;
@@ -146,8 +177,12 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     if (get_doubles(g_obj, &g, 1, n, "g_out") < 0 || get_doubles(grad_obj, &grad, 1, 3 * n, "grad_out") < 0)
         goto done;
     Py_BEGIN_ALLOW_THREADS
-    sample_points((const double *)coef.buf, ps, sh, spacing, (const double *)pts.buf, n,
-                  (double *)g.buf, (double *)grad.buf);
+    if (kind[0] == 'f')
+        sample_points_f32((const float *)coef.buf, ps, sh, spacing, (const double *)pts.buf, n,
+                          (double *)g.buf, (double *)grad.buf);
+    else
+        sample_points_f64((const double *)coef.buf, ps, sh, spacing, (const double *)pts.buf, n,
+                          (double *)g.buf, (double *)grad.buf);
     Py_END_ALLOW_THREADS
     result = Py_None;
     Py_INCREF(result);

@@ -64,6 +64,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
+from segsnake.allocator import return_freed_memory
 from segsnake.config import (
     LineDict,
     LineList,
@@ -590,6 +591,7 @@ def _child_main(runner: str, case: dict[str, Any], sys_path: list[str],
     """Entry point of the one process that runs one case (with ``threads`` threads)."""
     _die_with_batch(alive)
     set_threads(threads)
+    return_freed_memory()  # (as the segsnake program does: segsnake.allocator)
     # Ctrl-C in a terminal reaches every process of the group: the case unwinds (its staging
     # files removed) and ends with 130 in silence; the batch reports the interruption once.
     cancel.install()

@@ -19,6 +19,7 @@ import threading
 from typing import Any, Sequence
 
 from segsnake import __version__, cancel
+from segsnake.allocator import return_freed_memory
 from segsnake.errors import SegsnakeError
 
 DESCRIPTION = ("Segment 3D structures in medical volumes with smooth spline snakes "
@@ -154,6 +155,8 @@ def main(argv: Sequence[str] | None = None, *,
     """
     if exit_process is None:
         exit_process = argv is None
+    if exit_process:  # the segsnake program: its freed volumes go back to the system
+        return_freed_memory()
     argv = list(sys.argv[1:] if argv is None else argv)
     # Known before parsing, so that a command line argparse refuses is reported in JSON too.
     state: dict[str, Any] = {"command": None, "json": "--json" in argv, "debug": False}

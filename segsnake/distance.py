@@ -14,9 +14,9 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from segsnake.parallel import threads
+from segsnake.parallel import pieces, thread_map, threads
 
-__all__ = ["distance_to", "ITK_MIN_VOXELS"]
+__all__ = ["distance_to", "distance_within", "ITK_MIN_VOXELS"]
 
 ITK_MIN_VOXELS = 1 << 21
 
@@ -51,3 +51,60 @@ def distance_to(mask: NDArray[np.bool_], spacing: Sequence[float]) -> NDArray[np
     out = sitk.GetArrayFromImage(dist.Execute(image))
     # Inside the mask Maurer measures to the mask's own border (negative): those voxels are on it.
     return np.maximum(out, np.float32(0.0), out=out)
+
+
+def distance_within(mask: NDArray[np.bool_], spacing: Sequence[float],
+                    max_mm: float) -> NDArray[np.float32]:
+    """Like :func:`distance_to` where the distance is at most ``max_mm``, ``inf`` beyond.
+
+    The squared Euclidean distance separates into three one-dimensional minimizations (the
+    lower envelope of parabolas, axis after axis), and a mask voxel at most ``max_mm`` away lies
+    at most ``max_mm / s`` voxels away along each axis: so three passes of ``2 R + 1`` shifted
+    minima (``R = floor(max_mm / s)`` per axis) give every distance up to ``max_mm`` exactly (to
+    float32 rounding, as the full transform). It needs two float32 volumes and no library
+    beyond numpy: the region stages read the outside in a shell a few mm wide, where the full
+    transform's memory (ITK's, with its 100 MB library, or scipy's three int32 index volumes)
+    was the run's peak (issue 18).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    sp = tuple(float(s) for s in spacing)
+    d2 = np.where(mask, np.float32(0.0), np.float32(np.inf))
+    tmp = np.empty_like(d2)
+    for axis, s in enumerate(sp):
+        reach = int(np.floor(max_mm / s + 1e-9))
+        if reach < 1:
+            continue
+        # (pieces across another axis: each pass along ``axis`` is independent; small pieces
+        # keep the shifted sums' temporaries small)
+        thread_map(lambda sl, axis=axis, s=s, reach=reach: _envelope_1d(d2[sl], tmp[sl], axis, s,
+                                                                       reach),
+                   _pieces_across(d2.shape, axis))
+        d2, tmp = tmp, d2
+    del tmp
+    limit = np.float32(max_mm) * np.float32(max_mm)
+    d2[d2 > limit] = np.inf
+    return np.sqrt(d2, out=d2)
+
+
+def _pieces_across(shape: Sequence[int], axis: int, size: int = 1 << 18) -> list[tuple[slice, ...]]:
+    """Index tuples cutting ``shape`` across its longest axis other than ``axis`` into pieces of
+    about ``size`` voxels (at least one plane each)."""
+    cut = max((a for a in range(len(shape)) if a != axis), key=lambda a: shape[a])
+    plane = int(np.prod(shape)) // max(shape[cut], 1)
+    return [tuple(sl if a == cut else slice(None) for a in range(len(shape)))
+            for sl in pieces(shape[cut], max(size // max(plane, 1), 1))]
+
+
+def _envelope_1d(src: NDArray, out: NDArray, axis: int, step: float, reach: int) -> None:
+    """``out[i] = min_{|a| <= reach} src[i + a] + (a step)^2`` along ``axis``."""
+    out[...] = src
+    n = src.shape[axis]
+    for a in range(1, min(reach, n - 1) + 1):
+        cost = np.float32((a * step) ** 2)
+        lo = [slice(None)] * src.ndim
+        hi = [slice(None)] * src.ndim
+        lo[axis], hi[axis] = slice(0, n - a), slice(a, n)
+        lo, hi = tuple(lo), tuple(hi)
+        # the neighbour a voxels up (and down) along the axis, at its squared distance
+        np.minimum(out[lo], src[hi] + cost, out=out[lo])
+        np.minimum(out[hi], src[lo] + cost, out=out[hi])

@@ -90,9 +90,9 @@ def _deriv(a: np.ndarray, axis: int, h: float, order: int) -> np.ndarray:
 
 
 def _cumint_x(g: np.ndarray, h: float, out: np.ndarray | None = None) -> np.ndarray:
-    """4th-order cumulative integral along axis 0 from the first plane (float64, into ``out``
-    if given), in threads over slabs cut across another axis, each written straight into the
-    result."""
+    """4th-order cumulative integral along axis 0 from the first plane (float64, or into ``out``
+    if given, float64 or float32, which may be ``g`` itself), in threads over slabs cut across another axis, each
+    written straight into the result."""
     if out is None:
         out = np.empty_like(g, dtype=np.float64)
     thread_map(lambda sl: _cumint_x_slab(g[sl], h, out[sl]), slabs(g.shape, 0))
@@ -100,31 +100,40 @@ def _cumint_x(g: np.ndarray, h: float, out: np.ndarray | None = None) -> np.ndar
 
 
 def _cumint_x_slab(g: np.ndarray, h: float, out: np.ndarray) -> None:
-    out[0] = 0.0
+    """Plane by plane, summed in float64 whatever ``g``'s and ``out``'s types (one rounding per
+    value), with no full-size temporary.
+    ``out`` may be ``g``: the planes still to be read are kept before they are overwritten."""
     n = g.shape[0]
-    if n == 1:
-        return
-    np.add(g[1:], g[:-1], out=out[1:], dtype=np.float64)  # float64 whatever g's type
-    np.cumsum(out[1:], axis=0, out=out[1:])
-    out *= 0.5 * h  # the trapezoid rule
-    if n >= 3:
-        # Euler-Maclaurin end correction with a second-order derivative of g (np.gradient's
-        # formulas, edge_order 2), plane by plane: no full-size temporary.
-        def plane(i: int) -> np.ndarray:
-            return np.asarray(g[i], dtype=np.float64)
+    kept: dict[int, np.ndarray] = {}
 
-        def deriv(i: int) -> np.ndarray:
-            if i == 0:
-                return (-1.5 / h) * plane(0) + (2.0 / h) * plane(1) + (-0.5 / h) * plane(2)
-            if i == n - 1:
-                return (0.5 / h) * plane(n - 3) + (-2.0 / h) * plane(n - 2) + \
-                    (1.5 / h) * plane(n - 1)
-            return (plane(i + 1) - plane(i - 1)) / (2.0 * h)
+    def plane(i: int) -> np.ndarray:
+        return kept[i] if i in kept else np.array(g[i], dtype=np.float64)
 
-        d0 = deriv(0)
-        scale = h * h / 12.0
-        for i in range(1, n):
-            out[i] -= (deriv(i) - d0) * scale
+    def keep(i: int) -> None:  # plane i is about to be overwritten; planes i-2.. are read later
+        kept[i] = plane(i)
+        kept.pop(i - 3, None)
+
+    # Euler-Maclaurin end correction with a second-order derivative of g (np.gradient's
+    # formulas, edge_order 2).
+    def deriv(i: int) -> np.ndarray:
+        if i == 0:
+            return (-1.5 / h) * plane(0) + (2.0 / h) * plane(1) + (-0.5 / h) * plane(2)
+        if i == n - 1:
+            return (0.5 / h) * plane(n - 3) + (-2.0 / h) * plane(n - 2) + (1.5 / h) * plane(n - 1)
+        return (plane(i + 1) - plane(i - 1)) / (2.0 * h)
+
+    d0 = deriv(0) if n >= 3 else None
+    scale = h * h / 12.0
+    keep(0)
+    out[0] = 0.0
+    total = np.zeros(g.shape[1:])
+    for i in range(1, n):
+        total += plane(i) + plane(i - 1)
+        value = total * (0.5 * h)  # the trapezoid rule
+        if d0 is not None:
+            value -= (deriv(i) - d0) * scale
+        keep(i)
+        out[i] = value
 
 
 class Lookup:
@@ -152,15 +161,17 @@ class Lookup:
         self._build(values.shape, spacing, lambda inner: inner.__setitem__(Ellipsis, values))
 
     def _build(self, shape: Sequence[int], spacing: Sequence[float],
-               fill: Callable[[np.ndarray], None]) -> None:
+               fill: Callable[[np.ndarray], None], dtype=np.float64) -> None:
         """The interpolant of the samples ``fill`` writes into the coefficients' inner block
-        (float64): the samples are filtered where they lie, so no second full-size array is
-        held (measured at 256^3: a lookup's build peaked at 512 MB, 8 x the float32 field)."""
+        (of ``dtype``): the samples are filtered where they lie, so no second full-size array
+        is held (measured at 256^3: a lookup's build peaked at 512 MB, 8 x the float32 field)."""
         self.shape = tuple(int(s) for s in shape)
         self.spacing = _check_spacing(spacing)
+        if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
+            raise ValueError(f"lookup coefficients are float64 or float32, not {np.dtype(dtype)}")
         # The coefficients are computed inside the padded array, whose borders are then
         # mirrored axis by axis (corners included); an axis of one sample is left as it is.
-        self.coef = np.empty(tuple(n + 2 * _PAD for n in self.shape))
+        self.coef = np.empty(tuple(n + 2 * _PAD for n in self.shape), dtype=dtype)
         inner = self.coef[tuple(slice(_PAD, n + _PAD) for n in self.shape)]
         fill(inner)
         if not np.all(np.isfinite(inner)):
@@ -206,6 +217,29 @@ class Lookup:
             base = None
             integrand = f  # read as it is: the integral is accumulated in float64
         return cls._from_parts(base, integrand, sp)
+
+    @classmethod
+    def volume_integral(cls, shape: Sequence[int], spacing: Sequence[float],
+                        write: Callable[[np.ndarray], None], dtype=np.float64) -> "Lookup":
+        """Lookup for the volume integral of a density that ``write`` puts, in place, into the
+        array of ``shape`` it is given (``G = cumint(w)``, like :meth:`from_field` with
+        ``divergence_of_gradient=False``): the density is written where the coefficients will
+        be, so it never exists as a second volume (issue 18).
+
+        ``dtype`` (float64 or float32) is the coefficients' (and the written density's) type.
+        float32 halves the lookup's memory; the integral is summed in float64 plane by plane and
+        rounded once, so ``G`` is exact to a relative 6e-8 of its largest value (sampling is in
+        float64 either way).
+        """
+        sp = _check_spacing(spacing)
+
+        def fill(inner: np.ndarray) -> None:
+            write(inner)
+            _cumint_x(inner, sp[0], out=inner)
+
+        obj = cls.__new__(cls)
+        obj._build(shape, sp, fill, dtype)
+        return obj
 
     @classmethod
     def from_vector_field(

@@ -40,7 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from segsnake.distance import distance_to
+from segsnake.distance import distance_to, distance_within
+from segsnake.moments import mask_moments
 from segsnake.energy import AxialTension, FluxTerm, RingBarrier, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.frames import flux_frame
@@ -117,7 +118,9 @@ def auto_init(image: NDArray, spacing: Sequence[float],
     """
     from skimage.filters import threshold_otsu
 
-    finite = image[np.isfinite(image)]
+    ok = np.isfinite(image)
+    finite = image.ravel() if ok.all() else image[ok]  # (a view when nothing is missing)
+    del ok
     if finite.size == 0 or finite.min() == finite.max():
         raise SegmentationError("cannot estimate an initial sphere: the image is constant")
     level = threshold_otsu(finite)
@@ -136,10 +139,8 @@ def auto_init(image: NDArray, spacing: Sequence[float],
     if not candidates:
         raise SegmentationError("cannot estimate an initial sphere: no object after Otsu")
     comp = min(candidates, key=lambda c: c[:3])[3]  # off the border first, then the largest
-    idx = np.argwhere(comp).astype(np.float64)
-    center = idx.mean(axis=0)
+    center, cov = mask_moments(comp, spacing)
     sp = np.asarray(spacing, dtype=np.float64)
-    cov = np.cov((idx * sp).T) if len(idx) > 3 else np.eye(3)
     # A solid ellipsoid of semi-axis a has variance a^2 / 5 along it.
     radii_mm = np.sqrt(np.maximum(np.linalg.eigvalsh(cov), 0.0) * 5.0)
     r = 0.5 * float(np.exp(np.mean(np.log(np.maximum(radii_mm, sp.min())))))
@@ -425,12 +426,23 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         nonlocal window
         margin = p.window_mm
         while True:
+            run.lookup = None  # (the last stage's: not needed while this one's is built)
+
+            spent = []
+
+            def write(values, window=window):
+                # the density straight into the lookup's array, +1 in its padding
+                t0 = time.perf_counter()
+                values[...] = FOV_DENSITY
+                density(window, values[(slice(FOV_PAD, -FOV_PAD or None),) * 3])
+                spent.append(time.perf_counter() - t0)
+
             t0 = time.perf_counter()
-            # (padded here: the unpadded density is freed before the lookup is built)
-            w = window.pad(density(window), FOV_PAD, FOV_DENSITY)
-            run.timings["edge_map_s"] += time.perf_counter() - t0
-            model = window.model_out(run.region(window.model_in(start), w, name, tol))
-            del w
+            lookup = run.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
+            run.timings["edge_map_s"] += sum(spent)
+            run.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
+            model = window.model_out(run.region(window.model_in(start), lookup, name, tol))
+            del lookup
             if not window.reaches(model, p.shell_mm):
                 return model
             margin *= 2  # a surface that grows far needs few restarts
@@ -439,7 +451,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
 
     report("region", 0.1)
     if not on_boundary:
-        model = stage(model, lambda win: rg.region_density(image_s[win.slices], intensity),
+        model = stage(model, lambda win, out: rg.region_density(image_s[win.slices], intensity,
+                                                                out),
                       "region", p.interim_tol)
         if model.kind == "cylinder" and config.m2 is None:
             # Now that the tube's calibre is known: rings a radius apart along it.
@@ -453,13 +466,14 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     for k in range(p.two_class_rounds + 1):
         # The outside, read beyond the current surface; after the last round it scores the
         # result (an inside that does not differ from its outside found no boundary).
+        run.lookup = None  # (the last stage's lookup is done with)
         t0 = time.perf_counter()
         start, win = model, window
         sub = image_s[win.slices]
         inside = rasterize(win.model_in(model), win.shape, sp)
         if not inside.any():
             raise SegmentationError("the surface encloses no voxel centre")
-        shell = distance_to(inside, sp)
+        shell = distance_within(inside, sp, p.shell_mm)
         shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
         if not shell.any():
             raise SegmentationError("the surface filled the whole image: no outside to compare")
@@ -474,22 +488,20 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         if k == p.two_class_rounds:
             break
 
-        def density(w_win, shell=shell):
+        def density(w_win, out, shell=shell):
             # The two classes with the outside read around the round's starting surface (in a
             # grown window, read again there).
             if w_win != win:
                 inside_w = rasterize(w_win.model_in(start), w_win.shape, sp)
-                shell = distance_to(inside_w, sp)
+                shell = distance_within(inside_w, sp, p.shell_mm)
                 shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
             sub = image_s[w_win.slices]
             mu_out = rg.local_outside_mean(sub, shell, sp, p.outside_smooth_mm)
-            w = rg.two_class_density(sub, intensity, mu_out)
-            w = rg.blend(w, rg.region_density(sub, intensity), mu_out, intensity, in_place=True)
-            del mu_out  # (its memory held the blend's weights)
+            rg.two_class_blend(sub, intensity, mu_out, out)
+            del mu_out
             if p.edge_length_mm > 0:
-                w += rg.edge_density(image[w_win.slices], sp, polarity, contrast,
-                                     p.edge_length_mm, p.edge_smooth_mm)
-            return w
+                out += rg.edge_density(image[w_win.slices], sp, polarity, contrast,
+                                       p.edge_length_mm, p.edge_smooth_mm)
 
         del inside
         model = stage(model, density, f"two classes, round {k + 1}",
@@ -717,20 +729,25 @@ class _Run:
         self.history.append({"stage": name, **res})
         return model
 
-    def region(self, model, density, name: str, tol: float | None = None):
-        """Minimize the volume integral of ``density`` (:mod:`segsnake.region`): an array on a
-        window padded by :data:`FOV_PAD` voxels (:meth:`segsnake.window.Window.pad`; the model
-        in the window's coordinates), or a lookup; ``self.lookup`` keeps the lookup."""
+    def region_lookup(self, shape: Sequence[int], write: Callable[[NDArray], None]) -> "_Shifted":
+        """The lookup of a region density on a window padded by :data:`FOV_PAD` voxels (array
+        ``shape``), which ``write`` puts in place (:meth:`segsnake.lookup.Lookup.volume_integral`),
+        in the window's coordinates."""
         from segsnake.lookup import Lookup
 
-        if isinstance(density, np.ndarray):
-            t0 = time.perf_counter()
-            density = _Shifted(Lookup.from_field(density, self.sp, divergence_of_gradient=False),
-                               FOV_PAD * np.asarray(self.sp))
-            self.timings["lookup_s"] += time.perf_counter() - t0
-        self.lookup = density
+        # float32 coefficients: half the memory. |G| is at most the window's length (|w| <= 1),
+        # so their rounding is below 1e-5 mm^3 per mm^2 of surface; the results change at that
+        # level (docs/benchmarks.md, "Memory").
+        return _Shifted(Lookup.volume_integral(shape, self.sp, write, dtype=np.float32),
+                        FOV_PAD * np.asarray(self.sp))
+
+    def region(self, model, lookup: "_Shifted", name: str, tol: float | None = None):
+        """Minimize the volume integral of a density (:mod:`segsnake.region`) given by its
+        :meth:`region_lookup` (the model in the window's coordinates); ``self.lookup`` keeps
+        the lookup."""
+        self.lookup = lookup
         p = self.region_params
-        return self._stage(name, model, density, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
+        return self._stage(name, model, lookup, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
                            region=True)
 
     def capture(self, model, edges: NDArray, smooth_mm: float,

@@ -221,8 +221,7 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
     from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the "3d" projection
-    from scipy import ndimage
-
+    from segsnake.moments import mask_moments
     from segsnake.rasterize import rasterize
 
     sp = np.asarray(spacing, dtype=float)
@@ -232,7 +231,7 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
         centre = np.clip(np.round(point), 0, shape - 1).astype(int)
     else:
         point = None
-        centre = (np.round(ndimage.center_of_mass(mask)).astype(int) if mask.any()
+        centre = (np.round(mask_moments(mask)[0]).astype(int) if mask.any()
                   else shape // 2)
     init_mask = rasterize(init_model, mask.shape, spacing) if init_model is not None else None
     # Grey levels from the three slices shown (a percentile of the whole volume costs 0.2 s).

@@ -39,7 +39,7 @@ from segsnake.errors import SegmentationError
 from segsnake.parallel import gaussian_filter
 
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
-           "boundary_fraction", "blend",
+           "boundary_fraction", "blend", "two_class_blend",
            "local_outside_mean", "two_class_density", "edge_density", "step_contrast"]
 
 @dataclass(frozen=True)
@@ -150,15 +150,29 @@ def image_range(image_s: NDArray) -> float:
     return float(np.max(image_s)) - float(np.min(image_s))
 
 
-def region_density(image_s: NDArray, model: IntensityModel) -> NDArray:
-    """``w = tanh(llr / 2)`` per voxel (float32, see the module docstring)."""
-    out = np.empty(image_s.shape, dtype=np.float32)
-    offset = np.float32(math.log(model.sigma * math.sqrt(2 * math.pi) / model.range))
-    inv = np.float32(1.0 / model.sigma)
+def region_density(image_s: NDArray, model: IntensityModel,
+                   out: NDArray | None = None) -> NDArray:
+    """``w = tanh(llr / 2)`` per voxel (float32, see the module docstring; into ``out`` if
+    given, e.g. the inside of a padded array)."""
+    out = _output(image_s, out)
     for i in range(image_s.shape[0]):  # plane by plane: no float64 copy of the volume
-        z = (image_s[i] - np.float32(model.mu)) * inv
-        out[i] = np.tanh(np.float32(0.25) * z * z + np.float32(0.5) * offset)
+        out[i] = _click_plane(image_s[i], model)
     return out
+
+
+def _output(image_s: NDArray, out: NDArray | None) -> NDArray:
+    if out is None:
+        return np.empty(image_s.shape, dtype=np.float32)
+    if out.shape != image_s.shape:
+        raise ValueError(f"out has shape {out.shape}, the image {image_s.shape}")
+    return out
+
+
+def _click_plane(plane: NDArray, model: IntensityModel) -> NDArray:
+    """:func:`region_density` of one plane."""
+    offset = np.float32(math.log(model.sigma * math.sqrt(2 * math.pi) / model.range))
+    z = (plane - np.float32(model.mu)) * np.float32(1.0 / model.sigma)
+    return np.tanh(np.float32(0.25) * z * z + np.float32(0.5) * offset)
 
 
 def step_contrast(image_s: NDArray, inside: NDArray, shell: NDArray) -> tuple[float, int]:
@@ -203,41 +217,56 @@ def local_outside_mean(image_s: NDArray, shell: NDArray, spacing: Sequence[float
     return total
 
 
-def two_class_density(image_s: NDArray, model: IntensityModel, outside_mean: NDArray) -> NDArray:
+def two_class_density(image_s: NDArray, model: IntensityModel, outside_mean: NDArray,
+                      out: NDArray | None = None) -> NDArray:
     """``tanh(llr / 2)`` of the inside's Gaussian against a local outside one of the same spread
     centred on ``outside_mean``: ``llr = ((I - mu)^2 - (I - mu_out)^2) / (2 sigma^2)``, zero at
-    the midpoint between the two means, which on a step blurred symmetrically is the step."""
-    inv = np.float32(1.0 / (4.0 * model.sigma ** 2))
-    mu = np.float32(model.mu)
-    out = np.empty(image_s.shape, dtype=np.float32)
+    the midpoint between the two means, which on a step blurred symmetrically is the step
+    (float32; into ``out`` if given)."""
+    out = _output(image_s, out)
     for i in range(image_s.shape[0]):  # plane by plane: no float64 copy of the volume
-        a = image_s[i] - mu
-        b = image_s[i] - outside_mean[i]
-        out[i] = np.tanh((a * a - b * b) * inv)
+        out[i] = _two_class_plane(image_s[i], outside_mean[i], model)
     return out
 
 
+def _two_class_plane(plane: NDArray, outside_mean: NDArray, model: IntensityModel) -> NDArray:
+    """:func:`two_class_density` of one plane."""
+    a = plane - np.float32(model.mu)
+    b = plane - outside_mean
+    return np.tanh((a * a - b * b) * np.float32(1.0 / (4.0 * model.sigma ** 2)))
+
+
 def blend(two_class: NDArray, click: NDArray, outside_mean: NDArray,
-          model: IntensityModel, *, in_place: bool = False) -> NDArray:
+          model: IntensityModel) -> NDArray:
     """``a * two_class + (1 - a) * click``, ``a = clip((|mu_out - mu| / sigma - 1) / 2, 0, 1)``:
     where the local outside differs from the inside by 3 spreads or more, the two classes;
     where it looks like the inside (within one spread: a same-intensity neighbour, about which
     the two classes say nothing), the click's band. (Measured on the phantoms: the two classes
-    alone or the blend 0.970-0.987, the larger of the two densities 0.829-0.873.)
+    alone or the blend 0.970-0.987, the larger of the two densities 0.829-0.873.)"""
+    a = _blend_weight(outside_mean, model)
+    return (a * two_class + (1 - a) * click).astype(np.float32)
 
-    ``in_place``: the result is written into ``two_class`` and ``a`` into ``outside_mean``
-    (both float32, and no longer needed by the caller): at 256^3 the separate arrays were the
-    run's peak of memory."""
-    a = outside_mean if in_place else np.empty(outside_mean.shape, np.float32)
-    np.subtract(outside_mean, np.float32(model.mu), out=a, dtype=np.float32)
-    np.abs(a, out=a)
+
+def _blend_weight(outside_mean: NDArray, model: IntensityModel) -> NDArray:
+    """The two classes' share ``a`` of :func:`blend` (float32)."""
+    a = np.abs(outside_mean - np.float32(model.mu))
     a /= np.float32(model.sigma)
     a -= 1
     a /= 2
-    np.clip(a, 0, 1, out=a)
-    out = np.multiply(a, two_class, out=two_class if in_place else None)
-    np.subtract(1, a, out=a)
-    out += np.multiply(a, click, out=a)
+    return np.clip(a, 0, 1, out=a)
+
+
+def two_class_blend(image_s: NDArray, model: IntensityModel, outside_mean: NDArray,
+                    out: NDArray | None = None) -> NDArray:
+    """:func:`blend` of :func:`two_class_density` and :func:`region_density`, plane by plane
+    (float32; into ``out`` if given): the density of the two-class stages without their three
+    full-size arrays (issue 18)."""
+    out = _output(image_s, out)
+    for i in range(image_s.shape[0]):
+        a = _blend_weight(outside_mean[i], model)
+        two = _two_class_plane(image_s[i], outside_mean[i], model)
+        click = _click_plane(image_s[i], model)
+        out[i] = a * two + (1 - a) * click
     return out
 
 

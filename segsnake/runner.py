@@ -602,6 +602,12 @@ def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], ove
             except OutputError as exc:  # name the real output, not the staging file
                 reason = str(exc).split(": ", 1)[-1]
                 raise OutputError(f"{current}: {reason}") from None
+            # (the picture before the meshes: matplotlib's and VTK's libraries are not both
+            # loaded while the picture's arrays are alive, issue 18)
+            current = os.path.join(out_dir, "qc.png")
+            write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing, mask,
+                             model, init_model, affine=volume.affine, truth=truth, click=click,
+                             profile=profile)
             current = os.path.join(out_dir, "surface.vtp")
             write_surface(os.path.join(stage, "surface.vtp"), model, volume)
             if mesh is not None:
@@ -614,10 +620,6 @@ def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], ove
             if profile is not None:
                 current = os.path.join(out_dir, PROFILE_NAME)
                 _write_profile(os.path.join(stage, PROFILE_NAME), profile)
-            current = os.path.join(out_dir, "qc.png")
-            write_qc_picture(os.path.join(stage, "qc.png"), volume.data, volume.spacing, mask,
-                             model, init_model, affine=volume.affine, truth=truth, click=click,
-                             profile=profile)
             current = out_dir
             # A new set without a profile (a sphere) replaces an earlier cylinder's profile too.
             outdir.commit(stage, out_dir, overwrite, names, remove=(PROFILE_NAME,))

@@ -298,9 +298,20 @@ class SplineSurface:
         raise NotImplementedError
 
     # -- meshes -------------------------------------------------------------------------------
-    def to_mesh(self, samples_u: int | None = None, samples_v: int | None = None, **kwargs: Any):
-        """Triangle mesh (``pyvista.PolyData``) with outward-oriented faces."""
+    def triangles(self, samples_u: int | None = None, samples_v: int | None = None,
+                  **kwargs: Any) -> tuple[NDArray, NDArray]:
+        """The mesh of :meth:`to_mesh` as arrays: points ``(n, 3)`` and outward-oriented
+        triangles ``(f, 3)`` (vertex ids), without VTK."""
         raise NotImplementedError
+
+    def to_mesh(self, samples_u: int | None = None, samples_v: int | None = None, **kwargs: Any):
+        """Triangle mesh (``pyvista.PolyData``) with outward-oriented faces
+        (:meth:`triangles`)."""
+        import pyvista as pv
+
+        points, tris = self.triangles(samples_u, samples_v, **kwargs)
+        faces = np.hstack([np.full((len(tris), 1), 3), tris]).astype(np.int64).ravel()
+        return pv.PolyData(np.ascontiguousarray(points), faces)
 
     @staticmethod
     def _grid_faces(nu: int, rows: int, offset: int = 0) -> NDArray:
@@ -335,13 +346,10 @@ class SplineSurface:
         return [np.stack([np.full(nu, first_apex), first_row + i, first_row + ip], axis=1),
                 np.stack([np.full(nu, last_apex), last_row + ip, last_row + i], axis=1)]
 
-    def _polydata(self, points: NDArray, tris: NDArray):
-        import pyvista as pv
-
+    def _outward(self, points: NDArray, tris: NDArray) -> tuple[NDArray, NDArray]:
         if self.orientation < 0:  # faces were built sigma_v x sigma_u-outward
             tris = tris[:, ::-1]
-        faces = np.hstack([np.full((len(tris), 1), 3), tris]).astype(np.int64).ravel()
-        return pv.PolyData(np.ascontiguousarray(points), faces)
+        return points, tris
 
     # -- serialization ------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -515,7 +523,8 @@ class SphereModel(SplineSurface):
         return cls.from_parts(points, north, south, T1N, T2N, -T1S, -T2S)
 
     # -- meshes -------------------------------------------------------------------------------
-    def to_mesh(self, samples_u: int | None = None, samples_v: int | None = None, **kwargs: Any):
+    def triangles(self, samples_u: int | None = None, samples_v: int | None = None,
+                  **kwargs: Any) -> tuple[NDArray, NDArray]:
         """Closed, manifold triangle mesh with both poles as single vertices.
 
         Parameters
@@ -535,7 +544,7 @@ class SphereModel(SplineSurface):
         tris = [self._grid_faces(nu, nv - 1)]
         last = (nv - 2) * nu
         tris += self._cap_faces(nu, n_ring, 0, n_ring + 1, last)
-        return self._polydata(pts, np.concatenate(tris))
+        return self._outward(pts, np.concatenate(tris))
 
 
 def _ring_tangents(ring: NDArray, m2: int) -> tuple[NDArray, NDArray]:
@@ -746,8 +755,8 @@ class CylinderModel(SplineSurface):
             cap += sign * -self.orientation * (c @ vec) / 3.0
         return lateral + cap
 
-    def to_mesh(self, samples_u: int | None = None, samples_v: int | None = None,
-                caps: bool = True, **kwargs: Any):
+    def triangles(self, samples_u: int | None = None, samples_v: int | None = None,
+                  caps: bool = True, **kwargs: Any) -> tuple[NDArray, NDArray]:
         """Triangle mesh of the lateral surface, closed by planar end caps when ``caps``."""
         nu = samples_u or 8 * self.m1
         nv = samples_v or 8 * self.m2
@@ -761,7 +770,7 @@ class CylinderModel(SplineSurface):
             first, last = pts[:nu], pts[-nu:]
             pts = np.vstack([pts, first.mean(axis=0), last.mean(axis=0)])
             tris += self._cap_faces(nu, n0, 0, n0 + 1, nv * nu)
-        return self._polydata(pts, np.concatenate(tris))
+        return self._outward(pts, np.concatenate(tris))
 
 
 #: Bounds of the axial control-interval count M2 chosen from a tube's length

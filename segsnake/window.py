@@ -90,10 +90,6 @@ class Window:
         out[self.slices] = mask
         return out
 
-    def pad(self, values: NDArray, width: int, outside: float) -> NDArray:
-        """``values`` on the window padded by ``width`` voxels of ``outside`` on every side."""
-        return np.pad(values, width, constant_values=outside)
-
     def union(self, other: "Window") -> "Window":
         """The smallest window holding both."""
         return Window(tuple(map(min, self.lo, other.lo)), tuple(map(max, self.hi, other.hi)),

@@ -24,3 +24,21 @@ def test_distance_to_matches_scipy_on_anisotropic_grids(monkeypatch, itk):
         assert np.all(got[mask] == 0)
     assert np.all(np.isinf(distance_to(np.zeros((4, 5, 6), bool), (1, 1, 1))))
     assert np.all(distance_to(np.ones((4, 5, 6), bool), (1, 2, 3)) == 0)
+
+
+def test_distance_within_is_the_exact_distance_up_to_its_bound():
+    # The band transform: every distance up to max_mm as scipy's full transform gives it, inf
+    # beyond, on anisotropic grids and with a bound between voxel steps.
+    rng = np.random.default_rng(11)
+    for shape, sp, bound in [((30, 26, 20), (1.0, 1.0, 1.0), 4.0),
+                             ((40, 36, 14), (0.6, 0.7, 2.5), 4.0),
+                             ((24, 24, 24), (0.8, 1.3, 1.1), 3.3)]:
+        mask = ndimage.binary_dilation(rng.random(shape) < 0.002, iterations=2)
+        ref = ndimage.distance_transform_edt(~mask, sampling=sp)
+        got = distance.distance_within(mask, sp, bound)
+        near = ref <= bound
+        assert got.dtype == np.float32 and got.shape == shape
+        assert np.allclose(got[near], ref[near], rtol=1e-6, atol=1e-5)
+        assert np.all(np.isinf(got[~near]))
+    assert np.all(np.isinf(distance.distance_within(np.zeros((5, 6, 7), bool), (1, 1, 1), 3.0)))
+    assert np.all(distance.distance_within(np.ones((5, 6, 7), bool), (1, 2, 3), 3.0) == 0)

@@ -276,3 +276,46 @@ def test_divergence_theorem_on_spline_sphere_model(lookups):
         flux = float(np.sum(w * G.reshape(nx.shape) * nx))
         vol = ellipsoid_volume_integral(blobs_lap, np.asarray(center), radii, rot)
         assert abs(flux - vol) <= 1e-3 * abs(vol), (flux, vol)
+
+
+
+def test_a_density_written_in_place_gives_the_same_lookup():
+    # Lookup.volume_integral: the density is written into the coefficients' own array and
+    # integrated there (the region stages' lookups, issue 18): the same bits as from a
+    # separate field, float32 or float64.
+    f = blobs(_grid()).astype(np.float32)
+    ref = Lookup.from_field(f, SPACING, divergence_of_gradient=False)
+
+    def write(values):
+        assert values.dtype == np.float64 and values.shape == f.shape
+        values[...] = f
+
+    got = Lookup.volume_integral(f.shape, SPACING, write)
+    assert np.array_equal(got.coef, ref.coef)
+    p = np.random.default_rng(2).uniform(0, 20, (50, 3))
+    assert np.array_equal(got.sample(p)[1], ref.sample(p)[1])
+
+
+def test_float32_coefficients_sample_the_same_integral():
+    # Half the memory (the region stages' lookups): the volume integral through the surface
+    # is the float64 lookup's to float32 rounding, and the kernel reads either type.
+    f = blobs(_grid()).astype(np.float32)
+
+    def write(values):
+        values[...] = f
+
+    lk64 = Lookup.volume_integral(f.shape, SPACING, write)
+    lk32 = Lookup.volume_integral(f.shape, SPACING, write, dtype=np.float32)
+    assert lk32.coef.dtype == np.float32 and lk32.coef.nbytes * 2 == lk64.coef.nbytes
+    p = np.random.default_rng(2).uniform(0, 20, (500, 3))
+    (g64, d64), (g32, d32) = lk64.sample(p), lk32.sample(p)
+    assert np.abs(g32 - g64).max() <= 1e-6 * np.abs(g64).max()
+    assert np.abs(d32 - d64).max() <= 1e-5 * np.abs(d64).max()
+    for center, radii, rot in SURFACES:
+        a, b = ellipsoid_flux(lk64, center, radii, rot), ellipsoid_flux(lk32, center, radii, rot)
+        assert abs(a - b) <= 1e-6 * abs(a)
+    with pytest.raises(ValueError, match="float64 or float32"):
+        Lookup.volume_integral(f.shape, SPACING, write, dtype=np.float16)
+    with pytest.raises(ValueError, match="coef: expected a C-contiguous float64"):
+        _sampling.sample(lk64._flat.astype(np.int64), lk64._pshape, lk64.shape, lk64.spacing,
+                         p, np.empty(len(p)), np.empty((len(p), 3)))

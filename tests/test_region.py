@@ -12,7 +12,8 @@ from segsnake.metrics import dice
 from segsnake.phantoms import make_phantom
 from segsnake.pipeline import region_energy, segment_volume
 from segsnake.region import (IntensityModel, RegionParams, blend, edge_density,
-                             local_outside_mean, region_density, two_class_density)
+                             local_outside_mean, region_density, two_class_blend,
+                             two_class_density)
 
 
 def test_intensity_model_is_the_median_and_the_mad_with_a_floor():
@@ -160,3 +161,22 @@ def test_blend_trusts_the_two_classes_only_where_the_outside_differs():
     assert w[0] == pytest.approx(0.7) and w[1] == pytest.approx(0.7)  # looks like the inside
     assert w[2] == pytest.approx(0.5 * -0.5 + 0.5 * 0.7)
     assert w[3] == pytest.approx(-0.5)
+
+
+def test_the_two_class_stage_density_is_the_blend_of_its_parts_in_one_array():
+    # Written plane by plane into the inside of a padded array, without the three full-size
+    # arrays of its parts (issue 18), and equal to them.
+    rng = np.random.default_rng(5)
+    m = IntensityModel(mu=100.0, sigma=10.0, range=400.0)
+    image = rng.uniform(40, 160, (6, 7, 8)).astype(np.float32)
+    outside = rng.uniform(60, 140, (6, 7, 8)).astype(np.float32)
+    parts = blend(two_class_density(image, m, outside), region_density(image, m), outside, m)
+    padded = np.full((10, 11, 12), 1.0, np.float32)
+    got = two_class_blend(image, m, outside, padded[2:-2, 2:-2, 2:-2])
+    assert np.allclose(got, parts, atol=1e-6) and np.allclose(padded[2:-2, 2:-2, 2:-2], parts,
+                                                                atol=1e-6)
+    assert padded[:2].min() == 1.0 and padded[:, :, -2:].min() == 1.0
+    assert np.array_equal(region_density(image, m, padded[2:-2, 2:-2, 2:-2]),
+                          region_density(image, m))
+    with pytest.raises(ValueError, match="shape"):
+        two_class_blend(image, m, outside, padded)

@@ -38,9 +38,6 @@ def test_reaches_only_the_window_faces_inside_the_volume():
     assert not win.reaches(model, guard_mm=4.0)
     moved = model.transformed(np.eye(3), [0.0, 4.0, 0.0])  # 2 mm from the high y face
     assert win.reaches(moved, guard_mm=4.0) and not win.reaches(moved, guard_mm=1.0)
-    padded = win.pad(np.zeros(win.shape, np.float32), 2, 1.0)
-    assert padded.shape == tuple(n + 4 for n in win.shape)
-    assert padded[:2].min() == 1.0 and padded[2:-2, 2:-2, 2:-2].max() == 0.0
 
 
 def test_a_small_window_gives_the_whole_volumes_result():
