@@ -47,7 +47,8 @@ from segsnake.frames import flux_frame
 from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
 from segsnake.parallel import gaussian_filter, pieces, thread_map
 from segsnake.regularize import BendingRegularizer
-from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, axial_rings
+from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, axial_rings, \
+    model_from_dict
 
 __all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
 
@@ -297,7 +298,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
                    index_from_world: Callable[[NDArray], NDArray] | None = None,
                    progress: Progress | None = None, extra_energy=None,
                    region_params=None,
-                   init_model: SplineSurface | None = None) -> SegmentResult:
+                   init_model: SplineSurface | None = None,
+                   init_record: dict | None = None) -> SegmentResult:
     """Segment one structure in ``image`` with the options of ``config`` (a SegmentConfig).
 
     Parameters
@@ -323,6 +325,10 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         region stage, which grows a click; edge stages: the discard of edges enclosed by the
         initial surface, and the first capture), so that a saved result is refined where it
         is rather than pulled elsewhere.
+    init_record : dict, optional
+        The saved result's ``restart`` record (its ``snake.json`` settings), with ``init_model``:
+        with the region energy, a run from a result on the same image with the same options
+        then reproduces it (:func:`_segment_region`).
     """
     sp = tuple(float(s) for s in spacing)
     t0 = time.perf_counter()
@@ -338,7 +344,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         config = config.replace(seed_point=[float(x) for x in seed])
     if region_energy(config):
         return _segment_region(image, sp, config, model, progress, extra_energy, init_s,
-                               region_params, on_boundary)
+                               region_params, on_boundary, init_record)
     frame = flux_frame(model, sp, image.shape)
     if frame is None:
         return _segment(image, sp, config, model, progress, extra_energy, init_s,
@@ -386,7 +392,8 @@ def region_energy(config) -> bool:
 
 
 def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
-                    params=None, on_boundary: bool = False) -> SegmentResult:
+                    params=None, on_boundary: bool = False,
+                    init_record: dict | None = None) -> SegmentResult:
     """The region energy from the click (:mod:`segsnake.region`, docs/design.md).
 
     1. *Intensity model*: the robust Gaussian of the smoothed image in the click's core.
@@ -399,6 +406,17 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
        ``edge_length_mm``, the flux of ``grad I`` over the step's peak gradient).
 
     ``on_boundary`` (a saved result): stage 2 is skipped, the snake is already on the step.
+    ``init_record``: that result's ``restart`` record (:func:`_restart_options`; in its
+    ``snake.json`` settings). When it was made on this image with these options for a snake of
+    this size, the run rebuilds the energy the result's last stage ended in (the intensity
+    model, the window, the last round's starting surface that placed the outside's shell, the
+    stage's reference surface and quadrature order) and runs only that stage, which checks
+    stationarity before its first step: a result comes back unchanged. Otherwise (a hand-edited
+    markups file, another size, image or options) the intensity model is read from the snake's
+    core and the last two rounds run as from a region stage.
+
+    The last stage (the last round, or the finer grid kept) ends stationary
+    (:func:`segsnake.optimize.stationarity`), and its record is returned in ``settings``.
     """
     from segsnake import region as rg
     from segsnake.rasterize import rasterize
@@ -411,14 +429,22 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     run.timings["init_s"] = init_s
     t0 = time.perf_counter()
     image_s = rg.smoothed(image, sp, p.smooth_mm)
-    window = Window.around(model, image.shape, sp, p.window_mm)
-    core = _click_core(window.model_in(model), window.shape, sp, p.core_fraction)
-    intensity = rg.IntensityModel.from_samples(image_s[window.slices][core],
-                                               rg.image_range(image_s), p.min_sigma_fraction)
-    del core
+    options = _restart_options(image, sp, config, p)
+    restart, restart_use = _usable_restart(init_record, options, model) if on_boundary \
+        else (None, None)
+    if restart is not None:
+        window = Window(*(tuple(map(int, c)) for c in restart["window"]),
+                        tuple(map(int, image.shape)), sp)
+        intensity = rg.IntensityModel(**restart["intensity"])
+    else:
+        window = Window.around(model, image.shape, sp, p.window_mm)
+        core = _click_core(window.model_in(model), window.shape, sp, p.core_fraction)
+        intensity = rg.IntensityModel.from_samples(image_s[window.slices][core],
+                                                   rg.image_range(image_s), p.min_sigma_fraction)
+        del core
     run.timings["edge_map_s"] = time.perf_counter() - t0
 
-    def stage(start, density, name, tol=None):
+    def stage(start, density, name, tol=None, stationary=False, resume=None):
         # One stage in a window around the surface; while its result comes near a face of the
         # window (which held it back), again from the same start in a window around both
         # (segsnake.window).
@@ -429,7 +455,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             # (padded here: the unpadded density is freed before the lookup is built)
             w = window.pad(density(window), FOV_PAD, FOV_DENSITY)
             run.timings["edge_map_s"] += time.perf_counter() - t0
-            model = window.model_out(run.region(window.model_in(start), w, name, tol))
+            model = window.model_out(run.region(window.model_in(start), w, name, tol, stationary,
+                                                resume))
+            resume = None  # (in the window's coordinates: a grown window starts afresh)
             del w
             if not window.reaches(model, p.shell_mm):
                 return model
@@ -450,13 +478,18 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 model = interpolate_tube(model, m2)
     report("two classes", 0.5)
 
-    for k in range(p.two_class_rounds + 1):
+    last = p.two_class_rounds - 1
+    final, record = None, None  # (the last stage's run.last, and its restart record)
+    # (a restart: only the last round, its outside read around the surface the saved one read)
+    for k in range(last if restart else 0, p.two_class_rounds + 1):
         # The outside, read beyond the current surface; after the last round it scores the
         # result (an inside that does not differ from its outside found no boundary).
         t0 = time.perf_counter()
         start, win = model, window
+        if restart is not None and k == last:
+            start = model_from_dict(restart["round_start"])
         sub = image_s[win.slices]
-        inside = rasterize(win.model_in(model), win.shape, sp)
+        inside = rasterize(win.model_in(start), win.shape, sp)
         if not inside.any():
             raise SegmentationError("the surface encloses no voxel centre")
         shell = distance_to(inside, sp)
@@ -492,37 +525,91 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             return w
 
         del inside
+        resume = None
+        if restart is not None:
+            resume = (model_from_dict(restart["reference"]), tuple(restart["order"]))
         model = stage(model, density, f"two classes, round {k + 1}",
-                      None if k == p.two_class_rounds - 1 else p.interim_tol)
+                      None if k == last else p.interim_tol, stationary=k == last, resume=resume)
         del density, shell
+        if k == last:
+            # The result's energy: its record (lookup from these, reference, order).
+            final, round_start, final_window = run.last, start, window
         # (a tube's rings follow its calibre instead: finer grids are for spheres)
-        if k == p.two_class_rounds - 1 and config.coarse_to_fine and model.kind == "sphere" \
+        if k == last and config.coarse_to_fine and model.kind == "sphere" \
                 and config.m1 is None and config.m2 is None:
-            model = window.model_out(_finer_grids(run, window.model_in(model), p))
+            finer, kept = _finer_grids(run, window.model_in(model), p)
+            model, final = window.model_out(finer), kept or final
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
     mask = win.embed(inside)
     del inside, shell
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
+    if final is not None:
+        record = {**options, "intensity": intensity.to_dict(),
+                  "window": [list(final_window.lo), list(final_window.hi)],
+                  "round_start": round_start.to_dict(), "stage": final["stage"],
+                  "reference": final["reference"].to_dict(), "order": final["order"]}
+    else:  # (no two-class round: the region stage's result, no record)
+        final = run.last
     settings = {"energy": "region", "intensity_model": intensity.to_dict(),
                 "contrast": contrast, "separation": contrast / intensity.sigma,
                 "boundary_fraction": on_step, "window": [list(window.lo), list(window.hi)],
-                "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
+                "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p),
+                "restart": record}
+    if on_boundary:
+        settings["restart_record"] = restart_use
     if model.kind == "cylinder":
         settings["ends"] = tube_ends(model, image.shape, sp)
-    return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
+    return SegmentResult(model, mask, final["energy"], run.iterations, run.history,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
 
 
-def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
+#: Version of the ``restart`` record in a result's settings (:func:`_restart_options`).
+RESTART_FORMAT = 1
+
+
+def _restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
+    """What a saved result's restart record must agree with to be used: the image (its
+    SHA-256, shape, dtype and voxel size) and the options that enter the region energy, as JSON
+    reads them back (a restart compares them with the record's)."""
+    import hashlib
+    import json
+
+    data = np.ascontiguousarray(image)
+    options = {"format": RESTART_FORMAT,
+               "image_sha256": hashlib.sha256(memoryview(data).cast("B")).hexdigest(),
+               "image_shape": list(data.shape), "image_dtype": str(data.dtype),
+               "spacing": [float(s) for s in spacing],
+               "polarity": config.polarity, "tol": config.tol, "max_iter": config.max_iter,
+               "prior": config.prior, "prior_weight": config.prior_weight,
+               "region_params": dataclasses.asdict(params)}
+    return json.loads(json.dumps(options))
+
+
+def _usable_restart(record, options: dict[str, Any], model: SplineSurface
+                    ) -> tuple[dict | None, str]:
+    """The record if it applies to a run from ``model`` with ``options``, and why (not)."""
+    if not isinstance(record, dict):
+        return None, "not used: the snake has none (a markups file, or an older snake.json)"
+    differ = [k for k, v in options.items() if record.get(k) != v]
+    if differ:
+        return None, f"not used: {', '.join(differ)} differ"
+    ref = record["reference"]
+    if (ref["kind"], ref["m1"], ref["m2"]) != (model.kind, model.m1, model.m2):
+        return None, "not used: the snake was resampled to another size"
+    return record, "used"
+
+
+def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``), each started
     from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
     it lowers the image energy by more than ``p.finer_gain`` of it (a finer grid always fits a
-    little better; what it must buy is detail the coarser one smoothed away)."""
+    little better; what it must buy is detail the coarser one smoothed away). Returns the
+    surface and the ``run.last`` of the finer stage kept (None if none)."""
     from segsnake.resample import resample
 
-    lookup = run.lookup
+    lookup, kept = run.lookup, None
 
     def image_energy(m: SplineSurface, order: int) -> float:
         flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
@@ -531,7 +618,7 @@ def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     for m in p.finer_m:
         if m <= min(model.m1, model.m2):
             continue
-        finer = run.region(resample(model, m, m), lookup, f"grid {m}x{m}")
+        finer = run.region(resample(model, m, m), lookup, f"grid {m}x{m}", stationary=True)
         # both on the finer grid's nodes: intervals of the coarser one's size or less
         order = min(2 * quadrature_order(float(longest_intervals(finer).max()),
                                          p.edge_smooth_mm), MAX_ORDER)
@@ -540,8 +627,8 @@ def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
         run.history[-1].update(image_energy_gain=gain, kept=bool(gain > p.finer_gain))
         if gain <= p.finer_gain:
             break
-        model = finer
-    return model
+        model, kept = finer, run.last
+    return model, kept
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:
@@ -707,20 +794,28 @@ class _Run:
         self.history: list[dict[str, Any]] = []
         self.iterations = 0
         self.timings: dict[str, float] = {"lookup_s": 0.0, "optimize_s": 0.0}
+        self.last: dict[str, Any] | None = None  # the last stage's energy and functional
 
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
-               weight=-1.0, region=False):
+               weight=-1.0, region=False, stationary=False, resume=None):
         model, res = _run_stage(model, lookup, weight, self.config, self.bounds, self.extra, band,
-                                feature_mm, tol, node_spacing, region)
+                                feature_mm, tol, node_spacing, region, stationary, resume)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
+        # What defines the energy this stage ended in (its lookup is self.lookup), for the
+        # restart record of the stage that gives the result.
+        reference, order = res.pop("functional")
+        self.last = {"stage": name, "energy": res["energy"], "reference": reference,
+                     "order": [int(o) for o in order]}
         self.history.append({"stage": name, **res})
         return model
 
-    def region(self, model, density, name: str, tol: float | None = None):
+    def region(self, model, density, name: str, tol: float | None = None,
+               stationary: bool = False, resume=None):
         """Minimize the volume integral of ``density`` (:mod:`segsnake.region`): an array on a
         window padded by :data:`FOV_PAD` voxels (:meth:`segsnake.window.Window.pad`; the model
-        in the window's coordinates), or a lookup; ``self.lookup`` keeps the lookup."""
+        in the window's coordinates), or a lookup; ``self.lookup`` keeps the lookup.
+        ``stationary``, ``resume``: see :func:`_run_stage`."""
         from segsnake.lookup import Lookup
 
         if isinstance(density, np.ndarray):
@@ -731,7 +826,7 @@ class _Run:
         self.lookup = density
         p = self.region_params
         return self._stage(name, model, density, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
-                           region=True)
+                           region=True, stationary=stationary, resume=resume)
 
     def capture(self, model, edges: NDArray, smooth_mm: float,
                 node_spacing: float = CAPTURE_NODE_SPACING):
@@ -857,7 +952,7 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
-               node_spacing=None, region=False):
+               node_spacing=None, region=False, stationary=False, resume=None):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -876,22 +971,42 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     ``region``: the lookup integrates a volume density (:mod:`segsnake.region`), which moves the
     surface far from its start: the fold check follows the surface (:class:`_Admissible`) and
     the bending is weighted for a volume energy (:func:`_stage_energy`).
+
+    A round's energy is defined by the lookup, the round's *reference* surface (its start, which
+    sets the regularization weights, the ring barrier and the longest allowed intervals) and its
+    quadrature order; the last round's are returned as ``functional``. ``resume`` (such a pair,
+    from a saved result's restart record) makes the first round use them instead of deriving
+    them from ``model``: the stage then minimizes exactly the energy the saved one ended in.
+    ``stationary``: the stage ends stationary to its tolerance
+    (:func:`segsnake.optimize.stationarity`): when the last round ended by the relative-change
+    rule before that, it goes on with the same energy (a *polish*, at most
+    :data:`segsnake.optimize.POLISH_ITER` iterations past that rule and within the stage's
+    iteration cap; the rounds before it run as without). The polish, like a resumed round,
+    checks stationarity before its first step: a restart from the result takes none.
     """
     t0 = time.perf_counter()
     iterations, evaluations, history, checks = 0, 0, [], []
     floor = np.array([4, 4])
     resolved = False
+    tol = tol or max(config.tol, 1e-5)
     for _ in range(8):
-        max_interval = 1.5 * longest_intervals(model)
-        order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
-                      for length, lo in zip(max_interval, floor))
+        reference, resumed = model, resume is not None
+        if resumed:
+            reference, order = resume
+            max_interval = 1.5 * longest_intervals(reference)
+            resume = None
+        else:
+            max_interval = 1.5 * longest_intervals(model)
+            order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
+                          for length, lo in zip(max_interval, floor))
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
-        energy = _stage_energy(model, lookup, weight, order, extra_energy, region)
+        energy = _stage_energy(reference, lookup, weight, order, extra_energy, region)
         check = _QuadratureCheck(energy.terms[0], fine, checks, model.params)
-        admissible = _Admissible(model, max_interval, follow=region)
+        admissible = _Admissible(reference, max_interval, follow=region)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
-                              tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
-                              admissible=admissible, callback=admissible.following(check.during))
+                              tol=tol, bounds_mm=bounds, max_step_mm=band,
+                              admissible=admissible, callback=admissible.following(check.during),
+                              stationary_tol=tol if resumed and stationary else None)
         model, final_energy = res.model, res.energy
         iterations += res.iterations
         evaluations += res.evaluations
@@ -920,12 +1035,22 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         if resolved or capped:
             break
         floor = np.array(fine)
+    if stationary and not capped and not check.failed:
+        # The polish: the last round's energy again, from its end, until it is stationary.
+        res = minimize_energy(model, energy, max_iter=config.max_iter - iterations, tol=tol,
+                              bounds_mm=bounds, max_step_mm=band,
+                              admissible=_Admissible(reference, max_interval, follow=region),
+                              stationary_tol=tol)
+        model, final_energy = res.model, res.energy
+        iterations += res.iterations
+        evaluations += res.evaluations
+        history += res.history
     return model, {"energy": final_energy, "iterations": iterations, "quadrature_order": order,
                    "quadrature_checks": checks, "quadrature_resolved": resolved,
                    "volume_mm3": model.volume(order=4),
                    "evaluations": evaluations, "converged": res.converged,
-                   "message": res.message, "history": history,
-                   "time_s": time.perf_counter() - t0}
+                   "message": res.message, "stationarity": res.stationarity, "history": history,
+                   "time_s": time.perf_counter() - t0, "functional": (reference, order)}
 
 
 class _QuadratureCheck:
