@@ -1035,17 +1035,18 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         if resolved or capped:
             break
         floor = np.array(fine)
+    polish = None
     if stationary and not capped and not check.failed:
         # The polish: the last round's energy again, from its end, until it is stationary.
         res = minimize_energy(model, energy, max_iter=config.max_iter - iterations, tol=tol,
                               bounds_mm=bounds, max_step_mm=band,
                               admissible=_Admissible(reference, max_interval, follow=region),
                               stationary_tol=tol)
-        model, final_energy = res.model, res.energy
+        model, final_energy, polish = res.model, res.energy, res.iterations
         iterations += res.iterations
         evaluations += res.evaluations
         history += res.history
-    return model, {"energy": final_energy, "iterations": iterations, "quadrature_order": order,
+    return model, {"polish_iterations": polish,"energy": final_energy, "iterations": iterations, "quadrature_order": order,
                    "quadrature_checks": checks, "quadrature_resolved": resolved,
                    "volume_mm3": model.volume(order=4),
                    "evaluations": evaluations, "converged": res.converged,

@@ -3,13 +3,10 @@ Slicer markups, ``render`` rebuilds the outputs from them (moved or not) on an i
 ``segment --init`` starts from a saved snake, at its own size or resampled.
 
 Measured on the noisy ball below: render of export-points gives the same mask voxel for voxel
-and the same world surface to rounding; ``--init`` of a result does not reproduce it exactly
-(Dice 0.9937, the final energy differs by 1.3 %). With the region energy (issue 15) the run from
---init skips the growth from a click, reads its intensity model from the saved snake's core
-(the first run read the click's) and the outside afresh beyond the saved surface, so its
-two-class rounds minimize a slightly different energy; it also re-chooses its quadrature and
-regularization weight from the saved shape and optimizes down to its tolerance (1e-5 relative
-energy change), which a second --init shows: Dice 0.9994, 1.7e-4.
+and the same world surface to rounding; ``--init`` of a result reproduces it (0 voxels, energy
+to 1e-15): its ``snake.json`` records what defines the energy its last stage ended in, and that
+stage ended stationary, which the run from it checks before its first step. An edited markups
+file carries no record and is refined.
 """
 
 from __future__ import annotations
