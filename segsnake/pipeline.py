@@ -327,8 +327,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         is rather than pulled elsewhere.
     init_record : dict, optional
         The saved result's ``restart`` record (its ``snake.json`` settings), with ``init_model``:
-        with the region energy, a run from a result on the same image with the same options
-        then reproduces it (:func:`_segment_region`).
+        a run from a result on the same image with the same options then reproduces it
+        (:func:`_segment_region`, :func:`_segment`).
     """
     sp = tuple(float(s) for s in spacing)
     t0 = time.perf_counter()
@@ -345,10 +345,19 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     if region_energy(config):
         return _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                region_params, on_boundary, init_record)
-    frame = flux_frame(model, sp, image.shape)
+    # The edge stages' record: the first run's initial surface chose the frame and the edges
+    # discarded; the rest is in the frame's coordinates (_segment).
+    from segsnake.region import RegionParams
+
+    options = _restart_options(image, sp, config, region_params or RegionParams())
+    record, record_use = _usable_restart(init_record, options, model) if on_boundary \
+        else (None, None)
+    first = model if record is None else model_from_dict(record["initial"])
+    frame = flux_frame(first, sp, image.shape)
     if frame is None:
-        return _segment(image, sp, config, model, progress, extra_energy, init_s,
-                        on_boundary=on_boundary)
+        res = _segment(image, sp, config, model, progress, extra_energy, init_s,
+                       on_boundary=on_boundary, record=record, first=first)
+        return _with_record(res, options, first, on_boundary, record_use)
     # Work in the frame whose first axis (the lookups' integration axis) runs across the
     # cylinder: there its open ends' missing caps carry no flux (segsnake.frames).
     t0 = time.perf_counter()
@@ -361,7 +370,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     scale = config.scale if config.scale is not None else _default_scale(sp)
     res = _segment(framed, frame.spacing, config.replace(seed_point=seed, scale=scale),
                    frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp),
-                   mask=False, on_boundary=on_boundary)
+                   mask=False, on_boundary=on_boundary, record=record,
+                   first=frame.model_in(first))
     del framed
     res.model = frame.model_out(res.model)
     res.init_model = model
@@ -373,6 +383,17 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     if frame.perm is not None:
         res.settings["integration_axis"] = int(frame.perm[0])
     res.settings["integration_direction"] = frame.integration_direction
+    return _with_record(res, options, first, on_boundary, record_use)
+
+
+def _with_record(res: SegmentResult, options: dict[str, Any], first: SplineSurface,
+                 on_boundary: bool, record_use: str | None) -> SegmentResult:
+    """An edge-stage result with its restart record completed: the options, and the initial
+    surface (the volume's coordinates) its frame and discards came from."""
+    res.settings["restart"] = {**options, "initial": first.to_dict(),
+                               **res.settings["restart"]}
+    if on_boundary:
+        res.settings["restart_record"] = record_use
     return res
 
 
@@ -571,8 +592,9 @@ RESTART_FORMAT = 1
 
 def _restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
     """What a saved result's restart record must agree with to be used: the image (its
-    SHA-256, shape, dtype and voxel size) and the options that enter the region energy, as JSON
-    reads them back (a restart compares them with the record's)."""
+    SHA-256, shape, dtype and voxel size) and the options that enter the energy (the region
+    energy's or the edge stages'), as JSON reads them back (a restart compares them with the
+    record's)."""
     import hashlib
     import json
 
@@ -581,6 +603,8 @@ def _restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
                "image_sha256": hashlib.sha256(memoryview(data).cast("B")).hexdigest(),
                "image_shape": list(data.shape), "image_dtype": str(data.dtype),
                "spacing": [float(s) for s in spacing],
+               "energy": config.energy, "feature": config.feature, "scale": config.scale,
+               "threshold": config.threshold, "seed_point": config.seed_point,
                "polarity": config.polarity, "tol": config.tol, "max_iter": config.max_iter,
                "prior": config.prior, "prior_weight": config.prior_weight,
                "region_params": dataclasses.asdict(params)}
@@ -591,10 +615,12 @@ def _usable_restart(record, options: dict[str, Any], model: SplineSurface
                     ) -> tuple[dict | None, str]:
     """The record if it applies to a run from ``model`` with ``options``, and why (not)."""
     if not isinstance(record, dict):
-        return None, "not used: the snake has none (a markups file, or an older snake.json)"
+        return None, ("not used: the snake has none (a markups file, a render output, or a "
+                      "snake.json of the edge stages or of an older segsnake)")
     differ = [k for k, v in options.items() if record.get(k) != v]
     if differ:
-        return None, f"not used: {', '.join(differ)} differ"
+        return None, (f"not used: the record's {', '.join(differ)} "
+                      f"{'differs' if len(differ) == 1 else 'differ'} from this run's")
     ref = record["reference"]
     if (ref["kind"], ref["m1"], ref["m2"]) != (model.kind, model.m1, model.m2):
         return None, "not used: the snake was resampled to another size"
@@ -668,12 +694,21 @@ def _final_mask(model: SplineSurface, shape, spacing) -> NDArray[np.bool_]:
 
 def _segment(image, sp, config, model, progress, extra_energy, init_s,
              smooth_mm: float | None = None, mask: bool = True,
-             on_boundary: bool = False) -> SegmentResult:
+             on_boundary: bool = False, record: dict | None = None,
+             first: SplineSurface | None = None) -> SegmentResult:
     """:func:`segment_volume` from the initial snake on, in the frame of ``image``
     (``smooth_mm``: the edge map's smoothing, default the largest voxel size; ``mask=False``:
     the caller rasterizes the result on another grid, ``SegmentResult.mask`` is None;
     ``on_boundary``: the snake is a saved result, no enclosed-edge discard and no first
-    capture)."""
+    capture).
+
+    ``record`` (with ``on_boundary``): the saved result's restart record, usable here. Then the
+    edges are discarded as the first run did, from its initial surface ``first``; the
+    refinement's normals are oriented (and an automatic polarity decided) on its recorded
+    starting surface, an inner face's band placed around its recorded sheet; the stages before
+    the last are skipped, and the last runs on its recorded reference and order: a stationary
+    result comes back unchanged (:func:`_run_stage`). The last stage ends stationary, and what
+    it needs is returned in ``settings["restart"]`` (in this frame's coordinates)."""
     from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
@@ -693,40 +728,50 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
                   threshold=config.threshold, seed=seed, smooth_mm=smooth_mm)
     # The initial surface lies inside the object (that is the contract of an initialization):
     # edges it encloses are internal structures (ventricles, vessels), never the boundary.
-    # (A saved result encloses its own boundary's edges: nothing is discarded for it.)
-    if not on_boundary:
-        inside_init = rasterize(model, shape, sp)
+    # (A saved result encloses its own boundary's edges: nothing is discarded for it, unless
+    # its record gives the first run's initial surface.)
+    first = model if first is None else first
+    if not on_boundary or record is not None:
+        inside_init = rasterize(first, shape, sp)
         _discard(em, ~ndimage.binary_dilation(inside_init) if inside_init.any() else None)
     if sheet:
         # A sheet around the object faces its centre (thesis sec. 7.2.2: keep the voxels whose
         # normal points to the centre); sheets that run radially (sulci, septa) are not it.
-        _discard(em, np.abs(_radial_cosine(em.normals, sp, *_center_and_axis(model))) >= 0.5)
+        _discard(em, np.abs(_radial_cosine(em.normals, sp, *_center_and_axis(first))) >= 0.5)
     run.timings["edge_map_s"] = time.perf_counter() - t0
     report("edge map", 0.15)
 
     if not on_boundary:
         model = run.capture(model, em.mask, em.smooth_mm)
     report("snake", 0.5)
+    # (the surface the refinement starts from orients its normals)
+    start = model if record is None else model_from_dict(record["refine_start"])
     if sheet:
-        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(model)))[..., None] \
+        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(start)))[..., None] \
             * em.normals
         polarity = "sheet"
     elif config.polarity in ("auto", "bright", "dark"):
-        pol = _polarity(model, em.gradient, sp) if config.polarity == "auto" else \
+        pol = _polarity(start, em.gradient, sp) if config.polarity == "auto" else \
             (1 if config.polarity == "bright" else -1)
         polarity = "bright" if pol > 0 else "dark"
         out = -pol * em.normals  # normals point to the brighter side
     else:
-        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(model)))[..., None] \
+        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(start)))[..., None] \
             * em.normals
         polarity = "none"
     inner_face = sheet and config.polarity in ("bright", "dark")
-    # Before an inner face, the sheet only has to be found well enough to place the band inside
-    # it: the capture's tolerance (measured on the T1 brain: its last three stages took 345
-    # iterations, now 242; same Dice).
-    model = run.refine(model, em, out, min(em.smooth_mm, scale),
-                       tol=INNER_FACE_SHEET_TOL if inner_face else None)
+    resume = None if record is None else \
+        (model_from_dict(record["reference"]), tuple(record["order"]))
+    if record is None or not inner_face:
+        # Before an inner face, the sheet only has to be found well enough to place the band
+        # inside it: the capture's tolerance (measured on the T1 brain: its last three stages
+        # took 345 iterations, now 242; same Dice).
+        model = run.refine(model, em, out, min(em.smooth_mm, scale),
+                           tol=INNER_FACE_SHEET_TOL if inner_face else None,
+                           stationary=not inner_face, resume=None if inner_face else resume)
     support = edge_support(model, em.f, sp)
+    sheet_model = model if record is None or not inner_face else \
+        model_from_dict(record["sheet"])
 
     if inner_face:
         # An object enclosed by a sheet (a brain in its CSF) ends at the sheet's inner face:
@@ -736,7 +781,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         t0 = time.perf_counter()
         # Every step that survives non-maximum suppression, thresholded among the candidates
         # of the band only: the inner face can be far weaker than the sheet's outer face.
-        inside = rasterize(model, shape, sp)
+        inside = rasterize(sheet_model, shape, sp)
         depth = distance_to(~inside, sp)
         band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale))
         del depth
@@ -751,12 +796,14 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         del derivs
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         # steps that face the sheet
-        band &= -pol * _radial_cosine(face.normals, sp, *_center_and_axis(model)) >= 0.5
+        band &= -pol * _radial_cosine(face.normals, sp, *_center_and_axis(sheet_model)) >= 0.5
         low, high = auto_levels(face.response[face.mask & band])
         _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
         run.timings["edge_map_s"] += time.perf_counter() - t0
-        model = run.capture(model, face.mask, face.smooth_mm, INNER_CAPTURE_NODE_SPACING)
-        model = run.refine(model, face, -pol * face.normals, min(face.smooth_mm, scale))
+        if record is None:
+            model = run.capture(model, face.mask, face.smooth_mm, INNER_CAPTURE_NODE_SPACING)
+        model = run.refine(model, face, -pol * face.normals, min(face.smooth_mm, scale),
+                           stationary=True, resume=resume)
         support = edge_support(model, face.f, sp)
         polarity = f"inner face of a {config.polarity} sheet"
 
@@ -771,7 +818,12 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
     settings = {"edge_support": support, "scale_mm": scale, "smooth_mm": em.smooth_mm,
                 "regularization": REGULARIZATION,
                 "levels": None if em.levels is None else list(map(float, em.levels)),
-                "edge_voxels": int(em.mask.sum())}
+                "edge_voxels": int(em.mask.sum()),
+                "restart": {"refine_start": start.to_dict(),
+                            "sheet": sheet_model.to_dict() if inner_face else None,
+                            "stage": run.last["stage"],
+                            "reference": run.last["reference"].to_dict(),
+                            "order": run.last["order"]}}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
                          run.timings, polarity, init, settings)
 
@@ -862,7 +914,8 @@ class _Run:
         return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
                            2 * sigma, tol=1e-4, node_spacing=node_spacing)
 
-    def refine(self, model, em, out: NDArray, feature_mm: float, tol: float | None = None):
+    def refine(self, model, em, out: NDArray, feature_mm: float, tol: float | None = None,
+               stationary: bool = False, resume=None):
         """The region integral of n_out . grad f, n_out the detected normal oriented outward.
 
         Its first variation is n_out . grad f on the surface, which vanishes exactly on the
@@ -876,7 +929,8 @@ class _Run:
         lookup = Lookup.from_field(along.astype(np.float32), self.sp, divergence_of_gradient=False)
         del along
         self.timings["lookup_s"] += time.perf_counter() - t0
-        return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol)
+        return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol,
+                           stationary=stationary, resume=resume)
 
 
 def edge_support(model: SplineSurface, f: NDArray, spacing: Sequence[float]) -> float:

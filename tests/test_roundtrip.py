@@ -273,6 +273,30 @@ def test_init_from_a_tube_result(tube, tmp_path, capsys):
     assert dice == 1.0 and rel <= 1e-9, (dice, rel)
 
 
+def test_init_from_an_edge_stage_result(tmp_path, capsys):
+    """The edge stages (``--feature surface``: a sheet, a cylinder in its frame) record what
+    their last refinement needs too (the initial surface that chose the frame and the discarded
+    edges, the refinement's starting surface that oriented the normals, its reference and
+    order): measured on this hollow cylinder, 0 voxels and 3e-16 (before: 603 voxels, Dice
+    0.974, 4.0e-2)."""
+    ph = make_phantom("hollow-cylinder", seed=0, shape=(48, 48, 48), std=30.0)
+    write_phantom(ph, tmp_path)
+    image = tmp_path / "image.nii.gz"
+    rc = main(["segment", str(image), "--out", str(tmp_path / "seg"), "-q", "--feature",
+               "surface", "--shape", "cylinder",
+               "--axis-start", *map(str, ph.init["axis_start"]),
+               "--axis-end", *map(str, ph.init["axis_end"]), "--radius", str(ph.init["radius"])])
+    assert rc == 0
+    rc, _, err = run("segment", [image, "--out", tmp_path / "again", "--feature", "surface",
+                                 "--init", tmp_path / "seg" / "snake.json", "-q"], capsys)
+    assert rc == 0, err
+    record = json.loads((tmp_path / "again" / "snake.json").read_text())
+    assert record["settings"]["restart_record"] == "used"
+    assert [(h["stage"], h["iterations"]) for h in record["energy_history"]] == [("refine", 0)]
+    dice, rel = dice_and_energy(tmp_path / "again", tmp_path / "seg")
+    assert dice == 1.0 and rel <= 1e-9, (dice, rel)
+
+
 def test_init_from_edited_points_refines(ball, tmp_path, capsys):
     """A markups file carries no restart record (its points may have been moved): --init from
     it reads the intensity model from the snake's core and runs the two-class rounds, which
