@@ -434,7 +434,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     stage's reference surface and quadrature order) and runs only that stage, which checks
     stationarity before its first step: a result comes back unchanged. Otherwise (a hand-edited
     markups file, another size, image or options) the intensity model is read from the snake's
-    core and the last two rounds run as from a region stage.
+    core and the two-class rounds run from it.
 
     The last stage (the last round, or the finer grid kept) ends stationary
     (:func:`segsnake.optimize.stationarity`), and its record is returned in ``settings``.
@@ -616,7 +616,7 @@ def _usable_restart(record, options: dict[str, Any], model: SplineSurface
     """The record if it applies to a run from ``model`` with ``options``, and why (not)."""
     if not isinstance(record, dict):
         return None, ("not used: the snake has none (a markups file, a render output, or a "
-                      "snake.json of the edge stages or of an older segsnake)")
+                      "snake.json of an older segsnake)")
     differ = [k for k, v in options.items() if record.get(k) != v]
     if differ:
         return None, (f"not used: the record's {', '.join(differ)} "
