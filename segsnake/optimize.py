@@ -2,7 +2,9 @@
 
 L-BFGS on the exact gradient with a cap on how far a control point moves per iteration, with
 convergence on the relative energy change and on
-the step size, an iteration cap, a progress callback, and guards that turn numerical trouble
+the step size, optionally on first-order stationarity (:func:`stationarity`, checked before
+the first step too, so that a minimization started at its own end takes no step), an iteration
+cap, a progress callback, and guards that turn numerical trouble
 into :class:`segsnake.errors.SegmentationError` instead of a hang or a garbage surface: a NaN or
 infinite energy or gradient, a surface that leaves the volume, one that collapses (its volume
 falls below a fraction of the initial one or turns inside out).
@@ -21,7 +23,7 @@ from segsnake.energy import Energy
 from segsnake.errors import SegmentationError
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["OptimizeResult", "minimize_energy", "surface_metric"]
+__all__ = ["OptimizeResult", "minimize_energy", "stationarity", "surface_metric"]
 
 
 @dataclass
@@ -35,11 +37,17 @@ class OptimizeResult:
     converged: bool
     message: str
     history: list[float] = field(default_factory=list)
+    #: :func:`stationarity` at the end (None unless ``stationary_tol`` was given).
+    stationarity: float | None = None
 
 
 #: A surface whose volume falls below this fraction of its start's collapsed (the end check of
 #: :func:`minimize_energy`; the region stages refuse such steps, ``pipeline._Admissible``).
 MIN_VOLUME_FRACTION = 0.02
+
+#: With ``stationary_tol``: iterations a minimization may go on after the relative-change or step
+#: rule said it converged, waiting for :func:`stationarity` to fall below the tolerance.
+POLISH_ITER = 50
 
 def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300,
                     tol: float = 1e-5, step_tol_mm: float = 1e-3,
@@ -49,7 +57,8 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
                     bounds_mm: NDArray | None = None,
                     callback: Callable[[int, float, NDArray], bool | None] | None = None,
                     min_volume_fraction: float = MIN_VOLUME_FRACTION,
-                    window: int = 5) -> OptimizeResult:
+                    window: int = 5,
+                    stationary_tol: float | None = None) -> OptimizeResult:
     """Minimize ``energy`` starting from ``model`` with step-limited L-BFGS.
 
     Parameters
@@ -92,6 +101,16 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         A volume below this fraction of the initial one counts as a collapse.
     window : int
         Number of iterations over which the energy change is measured (see ``tol``).
+    stationary_tol : float, optional
+        Also stop when :func:`stationarity` (the relative first-order decrease of a
+        ``step_tol_mm`` move along the L2 gradient flow) is at most this, checked before the
+        first step too: a minimization started where one of the same energy ended stationary
+        takes no step (``segment --init`` of a result reproduces it exactly). The relative-change
+        and step rules then do not end the minimization before it is stationary, unless
+        :data:`POLISH_ITER` more iterations did not get there (the message then says "not
+        stationary"). For a start that is the end of *another* energy (a stage's next
+        quadrature round) leave it off: the test is first-order, and such a start may pass it
+        while the new energy still has more to give than the relative-change rule would leave.
     """
     if window < 1:
         raise ValueError(f"window must be at least 1, got {window}")
@@ -125,6 +144,17 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     y_list: list[NDArray] = []
     converged, message, it = False, f"iteration cap ({max_iter}) reached", 0
     steps: list[float] = []
+    station: float | None = None
+    slow_since: int | None = None  # iteration at which the change or step rule first held
+
+    def stationary() -> bool:
+        nonlocal station
+        station = stationarity(model.with_params(x), f, g, step_tol_mm, sampler)
+        return station <= stationary_tol
+
+    if stationary_tol is not None and stationary():
+        max_iter = 0  # stationary where it starts: no step
+        converged, message = True, "stationary (first-order decrease below tol)"
     for it in range(1, max_iter + 1):
         cancel.check()  # a signal stops the run between iterations (segsnake.cancel)
         d = -_two_loop(g, s_list, y_list, precondition)
@@ -167,16 +197,65 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
             break
         # The decrease over the last few iterations, not one: a single small step (after an
         # overshoot, or one shortened to stay admissible) says nothing about convergence.
-        if it >= window and history[-window - 1] - f <= window * tol * max(abs(f), 1e-12):
-            converged, message = True, "relative energy change below tol"
-            break
         steps.append(step)
-        if it >= window and sum(steps[-window:]) < step_tol_mm:
-            converged, message = True, "steps below step_tol_mm"
+        rule = None
+        if it >= window and history[-window - 1] - f <= window * tol * max(abs(f), 1e-12):
+            rule = "relative energy change below tol"
+        elif it >= window and sum(steps[-window:]) < step_tol_mm:
+            rule = "steps below step_tol_mm"
+        if stationary_tol is not None and (rule is not None or slow_since is not None):
+            # Slow, but is it stationary? Go on (a while) until it is.
+            slow_since = it if slow_since is None else slow_since
+            if stationary():
+                converged, message = True, "stationary (first-order decrease below tol)"
+                break
+            if it - slow_since < POLISH_ITER:
+                continue
+            rule = rule or "polish cap reached"
+            converged, message = True, f"{rule} (not stationary)"
+            break
+        if rule is not None:
+            converged, message = True, rule
             break
     final = model.with_params(x)
     _check_surface(final, v0, bounds_mm, min_volume_fraction)
-    return OptimizeResult(final, f, it, nfev, converged, message, history)
+    if stationary_tol is not None:
+        stationary()  # (at the end, whatever stopped it)
+    return OptimizeResult(final, f, it, nfev, converged, message, history, station)
+
+
+def stationarity(model: SplineSurface, energy: float, grad: NDArray, step_mm: float,
+                 sampler: NDArray | None = None) -> float:
+    """How far from stationary ``model`` is: the first-order decrease of the energy, relative to
+    ``|energy|``, when the surface moves by ``step_mm`` (its largest point displacement) along
+    the steepest descent of the L2 gradient flow at this surface.
+
+    The direction is ``-M^-1 g`` with ``M`` the :func:`surface_metric` of ``model`` itself, so
+    the number depends only on the energy and the surface, not on how the minimization got
+    there (no curvature pairs, no starting metric): a restart from the same surface with the
+    same energy computes the same value before its first step.
+
+    Parameters
+    ----------
+    model : SplineSurface
+        The surface (its parameters are the point ``grad`` was taken at).
+    energy : float
+        The energy there.
+    grad : ndarray
+        Its gradient with respect to ``model.params``.
+    step_mm : float
+        The move the decrease is predicted for (the optimizer's ``step_tol_mm``: a move it would
+        count as standing still).
+    sampler : ndarray, optional
+        :func:`_displacement_operator` of the model's kind and size (built when not given).
+    """
+    if sampler is None:
+        sampler = _displacement_operator(model)
+    d = cho_solve(cho_factor(surface_metric(model)), grad)
+    move = float(np.max(np.linalg.norm(sampler @ d, axis=1)))
+    if move == 0.0:
+        return 0.0
+    return step_mm * float(np.sum(grad * d)) / move / max(abs(energy), 1e-300)
 
 
 def _line_search(fun, x, f, d, slope, have_curvature, max_step_mm, displacement, admissible):

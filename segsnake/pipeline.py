@@ -48,7 +48,8 @@ from segsnake.frames import flux_frame
 from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
 from segsnake.parallel import gaussian_filter, pieces, thread_map
 from segsnake.regularize import BendingRegularizer
-from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, axial_rings
+from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, axial_rings, \
+    model_from_dict
 
 __all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init"]
 
@@ -298,7 +299,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
                    index_from_world: Callable[[NDArray], NDArray] | None = None,
                    progress: Progress | None = None, extra_energy=None,
                    region_params=None,
-                   init_model: SplineSurface | None = None) -> SegmentResult:
+                   init_model: SplineSurface | None = None,
+                   init_record: dict | None = None) -> SegmentResult:
     """Segment one structure in ``image`` with the options of ``config`` (a SegmentConfig).
 
     Parameters
@@ -324,6 +326,10 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         region stage, which grows a click; edge stages: the discard of edges enclosed by the
         initial surface, and the first capture), so that a saved result is refined where it
         is rather than pulled elsewhere.
+    init_record : dict, optional
+        The saved result's ``restart`` record (its ``snake.json`` settings), with ``init_model``:
+        a run from a result on the same image with the same options then reproduces it
+        (:func:`_segment_region`, :func:`_segment`).
     """
     sp = tuple(float(s) for s in spacing)
     t0 = time.perf_counter()
@@ -339,11 +345,20 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
         config = config.replace(seed_point=[float(x) for x in seed])
     if region_energy(config):
         return _segment_region(image, sp, config, model, progress, extra_energy, init_s,
-                               region_params, on_boundary)
-    frame = flux_frame(model, sp, image.shape)
+                               region_params, on_boundary, init_record)
+    # The edge stages' record: the first run's initial surface chose the frame and the edges
+    # discarded; the rest is in the frame's coordinates (_segment).
+    from segsnake.region import RegionParams
+
+    options = _restart_options(image, sp, config, region_params or RegionParams())
+    record, record_use = _usable_restart(init_record, options, model) if on_boundary \
+        else (None, None)
+    first = model if record is None else model_from_dict(record["initial"])
+    frame = flux_frame(first, sp, image.shape)
     if frame is None:
-        return _segment(image, sp, config, model, progress, extra_energy, init_s,
-                        on_boundary=on_boundary)
+        res = _segment(image, sp, config, model, progress, extra_energy, init_s,
+                       on_boundary=on_boundary, record=record, first=first)
+        return _with_record(res, options, first, on_boundary, record_use)
     # Work in the frame whose first axis (the lookups' integration axis) runs across the
     # cylinder: there its open ends' missing caps carry no flux (segsnake.frames).
     t0 = time.perf_counter()
@@ -356,7 +371,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     scale = config.scale if config.scale is not None else _default_scale(sp)
     res = _segment(framed, frame.spacing, config.replace(seed_point=seed, scale=scale),
                    frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp),
-                   mask=False, on_boundary=on_boundary)
+                   mask=False, on_boundary=on_boundary, record=record,
+                   first=frame.model_in(first))
     del framed
     res.model = frame.model_out(res.model)
     res.init_model = model
@@ -368,6 +384,17 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     if frame.perm is not None:
         res.settings["integration_axis"] = int(frame.perm[0])
     res.settings["integration_direction"] = frame.integration_direction
+    return _with_record(res, options, first, on_boundary, record_use)
+
+
+def _with_record(res: SegmentResult, options: dict[str, Any], first: SplineSurface,
+                 on_boundary: bool, record_use: str | None) -> SegmentResult:
+    """An edge-stage result with its restart record completed: the options, and the initial
+    surface (the volume's coordinates) its frame and discards came from."""
+    res.settings["restart"] = {**options, "initial": first.to_dict(),
+                               **res.settings["restart"]}
+    if on_boundary:
+        res.settings["restart_record"] = record_use
     return res
 
 
@@ -387,7 +414,8 @@ def region_energy(config) -> bool:
 
 
 def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
-                    params=None, on_boundary: bool = False) -> SegmentResult:
+                    params=None, on_boundary: bool = False,
+                    init_record: dict | None = None) -> SegmentResult:
     """The region energy from the click (:mod:`segsnake.region`, docs/design.md).
 
     1. *Intensity model*: the robust Gaussian of the smoothed image in the click's core.
@@ -400,6 +428,17 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
        ``edge_length_mm``, the flux of ``grad I`` over the step's peak gradient).
 
     ``on_boundary`` (a saved result): stage 2 is skipped, the snake is already on the step.
+    ``init_record``: that result's ``restart`` record (:func:`_restart_options`; in its
+    ``snake.json`` settings). When it was made on this image with these options for a snake of
+    this size, the run rebuilds the energy the result's last stage ended in (the intensity
+    model, the window, the last round's starting surface that placed the outside's shell, the
+    stage's reference surface and quadrature order) and runs only that stage, which checks
+    stationarity before its first step: a result comes back unchanged. Otherwise (a hand-edited
+    markups file, another size, image or options) the intensity model is read from the snake's
+    core and the two-class rounds run from it.
+
+    The last stage (the last round, or the finer grid kept) ends stationary
+    (:func:`segsnake.optimize.stationarity`), and its record is returned in ``settings``.
     """
     from segsnake import region as rg
     from segsnake.rasterize import rasterize
@@ -412,14 +451,22 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     run.timings["init_s"] = init_s
     t0 = time.perf_counter()
     image_s = rg.smoothed(image, sp, p.smooth_mm)
-    window = Window.around(model, image.shape, sp, p.window_mm)
-    core = _click_core(window.model_in(model), window.shape, sp, p.core_fraction)
-    intensity = rg.IntensityModel.from_samples(image_s[window.slices][core],
-                                               rg.image_range(image_s), p.min_sigma_fraction)
-    del core
+    options = _restart_options(image, sp, config, p)
+    restart, restart_use = _usable_restart(init_record, options, model) if on_boundary \
+        else (None, None)
+    if restart is not None:
+        window = Window(*(tuple(map(int, c)) for c in restart["window"]),
+                        tuple(map(int, image.shape)), sp)
+        intensity = rg.IntensityModel(**restart["intensity"])
+    else:
+        window = Window.around(model, image.shape, sp, p.window_mm)
+        core = _click_core(window.model_in(model), window.shape, sp, p.core_fraction)
+        intensity = rg.IntensityModel.from_samples(image_s[window.slices][core],
+                                                   rg.image_range(image_s), p.min_sigma_fraction)
+        del core
     run.timings["edge_map_s"] = time.perf_counter() - t0
 
-    def stage(start, density, name, tol=None):
+    def stage(start, density, name, tol=None, stationary=False, resume=None):
         # One stage in a window around the surface; while its result comes near a face of the
         # window (which held it back), again from the same start in a window around both
         # (segsnake.window).
@@ -441,7 +488,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             lookup = run.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
             run.timings["edge_map_s"] += sum(spent)
             run.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
-            model = window.model_out(run.region(window.model_in(start), lookup, name, tol))
+            model = window.model_out(run.region(window.model_in(start), lookup, name, tol,
+                                                stationary, resume))
+            resume = None  # (in the window's coordinates: a grown window starts afresh)
             del lookup
             if not window.reaches(model, p.shell_mm):
                 return model
@@ -463,14 +512,19 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 model = interpolate_tube(model, m2)
     report("two classes", 0.5)
 
-    for k in range(p.two_class_rounds + 1):
+    last = p.two_class_rounds - 1
+    final, record = None, None  # (the last stage's run.last, and its restart record)
+    # (a restart: only the last round, its outside read around the surface the saved one read)
+    for k in range(last if restart else 0, p.two_class_rounds + 1):
         # The outside, read beyond the current surface; after the last round it scores the
         # result (an inside that does not differ from its outside found no boundary).
         run.lookup = None  # (the last stage's lookup is done with)
         t0 = time.perf_counter()
         start, win = model, window
+        if restart is not None and k == last:
+            start = model_from_dict(restart["round_start"])
         sub = image_s[win.slices]
-        inside = rasterize(win.model_in(model), win.shape, sp)
+        inside = rasterize(win.model_in(start), win.shape, sp)
         if not inside.any():
             raise SegmentationError("the surface encloses no voxel centre")
         shell = distance_within(inside, sp, p.shell_mm)
@@ -504,37 +558,96 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                        p.edge_length_mm, p.edge_smooth_mm)
 
         del inside
+        resume = None
+        if restart is not None:
+            resume = (model_from_dict(restart["reference"]), tuple(restart["order"]))
         model = stage(model, density, f"two classes, round {k + 1}",
-                      None if k == p.two_class_rounds - 1 else p.interim_tol)
+                      None if k == last else p.interim_tol, stationary=k == last, resume=resume)
         del density, shell
+        if k == last:
+            # The result's energy: its record (lookup from these, reference, order).
+            final, round_start, final_window = run.last, start, window
         # (a tube's rings follow its calibre instead: finer grids are for spheres)
-        if k == p.two_class_rounds - 1 and config.coarse_to_fine and model.kind == "sphere" \
+        if k == last and config.coarse_to_fine and model.kind == "sphere" \
                 and config.m1 is None and config.m2 is None:
-            model = window.model_out(_finer_grids(run, window.model_in(model), p))
+            finer, kept = _finer_grids(run, window.model_in(model), p)
+            model, final = window.model_out(finer), kept or final
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
     mask = win.embed(inside)
     del inside, shell
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
+    if final is not None:
+        record = {**options, "intensity": intensity.to_dict(),
+                  "window": [list(final_window.lo), list(final_window.hi)],
+                  "round_start": round_start.to_dict(), "stage": final["stage"],
+                  "reference": final["reference"].to_dict(), "order": final["order"]}
+    else:  # (no two-class round: the region stage's result, no record)
+        final = run.last
     settings = {"energy": "region", "intensity_model": intensity.to_dict(),
                 "contrast": contrast, "separation": contrast / intensity.sigma,
                 "boundary_fraction": on_step, "window": [list(window.lo), list(window.hi)],
-                "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p)}
+                "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p),
+                "restart": record}
+    if on_boundary:
+        settings["restart_record"] = restart_use
     if model.kind == "cylinder":
         settings["ends"] = tube_ends(model, image.shape, sp)
-    return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
+    return SegmentResult(model, mask, final["energy"], run.iterations, run.history,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
 
 
-def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
+#: Version of the ``restart`` record in a result's settings (:func:`_restart_options`).
+RESTART_FORMAT = 1
+
+
+def _restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
+    """What a saved result's restart record must agree with to be used: the image (its
+    SHA-256, shape, dtype and voxel size) and the options that enter the energy (the region
+    energy's or the edge stages'), as JSON reads them back (a restart compares them with the
+    record's)."""
+    import hashlib
+    import json
+
+    data = np.ascontiguousarray(image)
+    options = {"format": RESTART_FORMAT,
+               "image_sha256": hashlib.sha256(memoryview(data).cast("B")).hexdigest(),
+               "image_shape": list(data.shape), "image_dtype": str(data.dtype),
+               "spacing": [float(s) for s in spacing],
+               "energy": config.energy, "feature": config.feature, "scale": config.scale,
+               "threshold": config.threshold, "seed_point": config.seed_point,
+               "polarity": config.polarity, "tol": config.tol, "max_iter": config.max_iter,
+               "prior": config.prior, "prior_weight": config.prior_weight,
+               "region_params": dataclasses.asdict(params)}
+    return json.loads(json.dumps(options))
+
+
+def _usable_restart(record, options: dict[str, Any], model: SplineSurface
+                    ) -> tuple[dict | None, str]:
+    """The record if it applies to a run from ``model`` with ``options``, and why (not)."""
+    if not isinstance(record, dict):
+        return None, ("not used: the snake has none (a markups file, a render output, or a "
+                      "snake.json of an older segsnake)")
+    differ = [k for k, v in options.items() if record.get(k) != v]
+    if differ:
+        return None, (f"not used: the record's {', '.join(differ)} "
+                      f"{'differs' if len(differ) == 1 else 'differ'} from this run's")
+    ref = record["reference"]
+    if (ref["kind"], ref["m1"], ref["m2"]) != (model.kind, model.m1, model.m2):
+        return None, "not used: the snake was resampled to another size"
+    return record, "used"
+
+
+def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``), each started
     from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
     it lowers the image energy by more than ``p.finer_gain`` of it (a finer grid always fits a
-    little better; what it must buy is detail the coarser one smoothed away)."""
+    little better; what it must buy is detail the coarser one smoothed away). Returns the
+    surface and the ``run.last`` of the finer stage kept (None if none)."""
     from segsnake.resample import resample
 
-    lookup = run.lookup
+    lookup, kept = run.lookup, None
 
     def image_energy(m: SplineSurface, order: int) -> float:
         flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
@@ -543,7 +656,7 @@ def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     for m in p.finer_m:
         if m <= min(model.m1, model.m2):
             continue
-        finer = run.region(resample(model, m, m), lookup, f"grid {m}x{m}")
+        finer = run.region(resample(model, m, m), lookup, f"grid {m}x{m}", stationary=True)
         # both on the finer grid's nodes: intervals of the coarser one's size or less
         order = min(2 * quadrature_order(float(longest_intervals(finer).max()),
                                          p.edge_smooth_mm), MAX_ORDER)
@@ -552,8 +665,8 @@ def _finer_grids(run, model: SplineSurface, p) -> SplineSurface:
         run.history[-1].update(image_energy_gain=gain, kept=bool(gain > p.finer_gain))
         if gain <= p.finer_gain:
             break
-        model = finer
-    return model
+        model, kept = finer, run.last
+    return model, kept
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:
@@ -593,12 +706,21 @@ def _final_mask(model: SplineSurface, shape, spacing) -> NDArray[np.bool_]:
 
 def _segment(image, sp, config, model, progress, extra_energy, init_s,
              smooth_mm: float | None = None, mask: bool = True,
-             on_boundary: bool = False) -> SegmentResult:
+             on_boundary: bool = False, record: dict | None = None,
+             first: SplineSurface | None = None) -> SegmentResult:
     """:func:`segment_volume` from the initial snake on, in the frame of ``image``
     (``smooth_mm``: the edge map's smoothing, default the largest voxel size; ``mask=False``:
     the caller rasterizes the result on another grid, ``SegmentResult.mask`` is None;
     ``on_boundary``: the snake is a saved result, no enclosed-edge discard and no first
-    capture)."""
+    capture).
+
+    ``record`` (with ``on_boundary``): the saved result's restart record, usable here. Then the
+    edges are discarded as the first run did, from its initial surface ``first``; the
+    refinement's normals are oriented (and an automatic polarity decided) on its recorded
+    starting surface, an inner face's band placed around its recorded sheet; the stages before
+    the last are skipped, and the last runs on its recorded reference and order: a stationary
+    result comes back unchanged (:func:`_run_stage`). The last stage ends stationary, and what
+    it needs is returned in ``settings["restart"]`` (in this frame's coordinates)."""
     from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
@@ -618,40 +740,50 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
                   threshold=config.threshold, seed=seed, smooth_mm=smooth_mm)
     # The initial surface lies inside the object (that is the contract of an initialization):
     # edges it encloses are internal structures (ventricles, vessels), never the boundary.
-    # (A saved result encloses its own boundary's edges: nothing is discarded for it.)
-    if not on_boundary:
-        inside_init = rasterize(model, shape, sp)
+    # (A saved result encloses its own boundary's edges: nothing is discarded for it, unless
+    # its record gives the first run's initial surface.)
+    first = model if first is None else first
+    if not on_boundary or record is not None:
+        inside_init = rasterize(first, shape, sp)
         _discard(em, ~ndimage.binary_dilation(inside_init) if inside_init.any() else None)
     if sheet:
         # A sheet around the object faces its centre (thesis sec. 7.2.2: keep the voxels whose
         # normal points to the centre); sheets that run radially (sulci, septa) are not it.
-        _discard(em, np.abs(_radial_cosine(em.normals, sp, *_center_and_axis(model))) >= 0.5)
+        _discard(em, np.abs(_radial_cosine(em.normals, sp, *_center_and_axis(first))) >= 0.5)
     run.timings["edge_map_s"] = time.perf_counter() - t0
     report("edge map", 0.15)
 
     if not on_boundary:
         model = run.capture(model, em.mask, em.smooth_mm)
     report("snake", 0.5)
+    # (the surface the refinement starts from orients its normals)
+    start = model if record is None else model_from_dict(record["refine_start"])
     if sheet:
-        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(model)))[..., None] \
+        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(start)))[..., None] \
             * em.normals
         polarity = "sheet"
     elif config.polarity in ("auto", "bright", "dark"):
-        pol = _polarity(model, em.gradient, sp) if config.polarity == "auto" else \
+        pol = _polarity(start, em.gradient, sp) if config.polarity == "auto" else \
             (1 if config.polarity == "bright" else -1)
         polarity = "bright" if pol > 0 else "dark"
         out = -pol * em.normals  # normals point to the brighter side
     else:
-        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(model)))[..., None] \
+        out = np.sign(_radial_cosine(em.normals, sp, *_center_and_axis(start)))[..., None] \
             * em.normals
         polarity = "none"
     inner_face = sheet and config.polarity in ("bright", "dark")
-    # Before an inner face, the sheet only has to be found well enough to place the band inside
-    # it: the capture's tolerance (measured on the T1 brain: its last three stages took 345
-    # iterations, now 242; same Dice).
-    model = run.refine(model, em, out, min(em.smooth_mm, scale),
-                       tol=INNER_FACE_SHEET_TOL if inner_face else None)
+    resume = None if record is None else \
+        (model_from_dict(record["reference"]), tuple(record["order"]))
+    if record is None or not inner_face:
+        # Before an inner face, the sheet only has to be found well enough to place the band
+        # inside it: the capture's tolerance (measured on the T1 brain: its last three stages
+        # took 345 iterations, now 242; same Dice).
+        model = run.refine(model, em, out, min(em.smooth_mm, scale),
+                           tol=INNER_FACE_SHEET_TOL if inner_face else None,
+                           stationary=not inner_face, resume=None if inner_face else resume)
     support = edge_support(model, em.f, sp)
+    sheet_model = model if record is None or not inner_face else \
+        model_from_dict(record["sheet"])
 
     if inner_face:
         # An object enclosed by a sheet (a brain in its CSF) ends at the sheet's inner face:
@@ -661,7 +793,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         t0 = time.perf_counter()
         # Every step that survives non-maximum suppression, thresholded among the candidates
         # of the band only: the inner face can be far weaker than the sheet's outer face.
-        inside = rasterize(model, shape, sp)
+        inside = rasterize(sheet_model, shape, sp)
         depth = distance_to(~inside, sp)
         band = inside & (depth <= max(INNER_FACE_DEPTH_MM, 3 * scale))
         del depth
@@ -676,12 +808,14 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         del derivs
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         # steps that face the sheet
-        band &= -pol * _radial_cosine(face.normals, sp, *_center_and_axis(model)) >= 0.5
+        band &= -pol * _radial_cosine(face.normals, sp, *_center_and_axis(sheet_model)) >= 0.5
         low, high = auto_levels(face.response[face.mask & band])
         _discard(face, band & hysteresis_threshold(np.where(band, face.response, -1.0), low, high))
         run.timings["edge_map_s"] += time.perf_counter() - t0
-        model = run.capture(model, face.mask, face.smooth_mm, INNER_CAPTURE_NODE_SPACING)
-        model = run.refine(model, face, -pol * face.normals, min(face.smooth_mm, scale))
+        if record is None:
+            model = run.capture(model, face.mask, face.smooth_mm, INNER_CAPTURE_NODE_SPACING)
+        model = run.refine(model, face, -pol * face.normals, min(face.smooth_mm, scale),
+                           stationary=True, resume=resume)
         support = edge_support(model, face.f, sp)
         polarity = f"inner face of a {config.polarity} sheet"
 
@@ -696,7 +830,12 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
     settings = {"edge_support": support, "scale_mm": scale, "smooth_mm": em.smooth_mm,
                 "regularization": REGULARIZATION,
                 "levels": None if em.levels is None else list(map(float, em.levels)),
-                "edge_voxels": int(em.mask.sum())}
+                "edge_voxels": int(em.mask.sum()),
+                "restart": {"refine_start": start.to_dict(),
+                            "sheet": sheet_model.to_dict() if inner_face else None,
+                            "stage": run.last["stage"],
+                            "reference": run.last["reference"].to_dict(),
+                            "order": run.last["order"]}}
     return SegmentResult(model, mask, run.history[-1]["energy"], run.iterations, run.history,
                          run.timings, polarity, init, settings)
 
@@ -719,13 +858,19 @@ class _Run:
         self.history: list[dict[str, Any]] = []
         self.iterations = 0
         self.timings: dict[str, float] = {"lookup_s": 0.0, "optimize_s": 0.0}
+        self.last: dict[str, Any] | None = None  # the last stage's energy and functional
 
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
-               weight=-1.0, region=False):
+               weight=-1.0, region=False, stationary=False, resume=None):
         model, res = _run_stage(model, lookup, weight, self.config, self.bounds, self.extra, band,
-                                feature_mm, tol, node_spacing, region)
+                                feature_mm, tol, node_spacing, region, stationary, resume)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
+        # What defines the energy this stage ended in (its lookup is self.lookup), for the
+        # restart record of the stage that gives the result.
+        reference, order = res.pop("functional")
+        self.last = {"stage": name, "energy": res["energy"], "reference": reference,
+                     "order": [int(o) for o in order]}
         self.history.append({"stage": name, **res})
         return model
 
@@ -741,14 +886,15 @@ class _Run:
         return _Shifted(Lookup.volume_integral(shape, self.sp, write, dtype=np.float32),
                         FOV_PAD * np.asarray(self.sp))
 
-    def region(self, model, lookup: "_Shifted", name: str, tol: float | None = None):
+    def region(self, model, lookup: "_Shifted", name: str, tol: float | None = None,
+               stationary: bool = False, resume=None):
         """Minimize the volume integral of a density (:mod:`segsnake.region`) given by its
         :meth:`region_lookup` (the model in the window's coordinates); ``self.lookup`` keeps
-        the lookup."""
+        the lookup. ``stationary``, ``resume``: see :func:`_run_stage`."""
         self.lookup = lookup
         p = self.region_params
         return self._stage(name, model, lookup, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
-                           region=True)
+                           region=True, stationary=stationary, resume=resume)
 
     def capture(self, model, edges: NDArray, smooth_mm: float,
                 node_spacing: float = CAPTURE_NODE_SPACING):
@@ -784,7 +930,8 @@ class _Run:
         return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
                            2 * sigma, tol=1e-4, node_spacing=node_spacing)
 
-    def refine(self, model, em, out: NDArray, feature_mm: float, tol: float | None = None):
+    def refine(self, model, em, out: NDArray, feature_mm: float, tol: float | None = None,
+               stationary: bool = False, resume=None):
         """The region integral of n_out . grad f, n_out the detected normal oriented outward.
 
         Its first variation is n_out . grad f on the surface, which vanishes exactly on the
@@ -798,7 +945,8 @@ class _Run:
         lookup = Lookup.from_field(along.astype(np.float32), self.sp, divergence_of_gradient=False)
         del along
         self.timings["lookup_s"] += time.perf_counter() - t0
-        return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol)
+        return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol,
+                           stationary=stationary, resume=resume)
 
 
 def edge_support(model: SplineSurface, f: NDArray, spacing: Sequence[float]) -> float:
@@ -874,7 +1022,7 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
-               node_spacing=None, region=False):
+               node_spacing=None, region=False, stationary=False, resume=None):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -893,22 +1041,42 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     ``region``: the lookup integrates a volume density (:mod:`segsnake.region`), which moves the
     surface far from its start: the fold check follows the surface (:class:`_Admissible`) and
     the bending is weighted for a volume energy (:func:`_stage_energy`).
+
+    A round's energy is defined by the lookup, the round's *reference* surface (its start, which
+    sets the regularization weights, the ring barrier and the longest allowed intervals) and its
+    quadrature order; the last round's are returned as ``functional``. ``resume`` (such a pair,
+    from a saved result's restart record) makes the first round use them instead of deriving
+    them from ``model``: the stage then minimizes exactly the energy the saved one ended in.
+    ``stationary``: the stage ends stationary to its tolerance
+    (:func:`segsnake.optimize.stationarity`): when the last round ended by the relative-change
+    rule before that, it goes on with the same energy (a *polish*, at most
+    :data:`segsnake.optimize.POLISH_ITER` iterations past that rule and within the stage's
+    iteration cap; the rounds before it run as without). The polish, like a resumed round,
+    checks stationarity before its first step: a restart from the result takes none.
     """
     t0 = time.perf_counter()
     iterations, evaluations, history, checks = 0, 0, [], []
     floor = np.array([4, 4])
     resolved = False
+    tol = tol or max(config.tol, 1e-5)
     for _ in range(8):
-        max_interval = 1.5 * longest_intervals(model)
-        order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
-                      for length, lo in zip(max_interval, floor))
+        reference, resumed = model, resume is not None
+        if resumed:
+            reference, order = resume
+            max_interval = 1.5 * longest_intervals(reference)
+            resume = None
+        else:
+            max_interval = 1.5 * longest_intervals(model)
+            order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
+                          for length, lo in zip(max_interval, floor))
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
-        energy = _stage_energy(model, lookup, weight, order, extra_energy, region)
+        energy = _stage_energy(reference, lookup, weight, order, extra_energy, region)
         check = _QuadratureCheck(energy.terms[0], fine, checks, model.params)
-        admissible = _Admissible(model, max_interval, follow=region)
+        admissible = _Admissible(reference, max_interval, follow=region)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
-                              tol=tol or max(config.tol, 1e-5), bounds_mm=bounds, max_step_mm=band,
-                              admissible=admissible, callback=admissible.following(check.during))
+                              tol=tol, bounds_mm=bounds, max_step_mm=band,
+                              admissible=admissible, callback=admissible.following(check.during),
+                              stationary_tol=tol if resumed and stationary else None)
         model, final_energy = res.model, res.energy
         iterations += res.iterations
         evaluations += res.evaluations
@@ -937,12 +1105,23 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         if resolved or capped:
             break
         floor = np.array(fine)
-    return model, {"energy": final_energy, "iterations": iterations, "quadrature_order": order,
+    polish = None
+    if stationary and not capped and not check.failed:
+        # The polish: the last round's energy again, from its end, until it is stationary.
+        res = minimize_energy(model, energy, max_iter=config.max_iter - iterations, tol=tol,
+                              bounds_mm=bounds, max_step_mm=band,
+                              admissible=_Admissible(reference, max_interval, follow=region),
+                              stationary_tol=tol)
+        model, final_energy, polish = res.model, res.energy, res.iterations
+        iterations += res.iterations
+        evaluations += res.evaluations
+        history += res.history
+    return model, {"polish_iterations": polish,"energy": final_energy, "iterations": iterations, "quadrature_order": order,
                    "quadrature_checks": checks, "quadrature_resolved": resolved,
                    "volume_mm3": model.volume(order=4),
                    "evaluations": evaluations, "converged": res.converged,
-                   "message": res.message, "history": history,
-                   "time_s": time.perf_counter() - t0}
+                   "message": res.message, "stationarity": res.stationarity, "history": history,
+                   "time_s": time.perf_counter() - t0, "functional": (reference, order)}
 
 
 class _QuadratureCheck:

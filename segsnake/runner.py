@@ -32,7 +32,7 @@ from segsnake.centerline_files import read_centerline, resolve_centerline
 from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
 from segsnake.qc import click_index, write_qc_picture
-from segsnake.saved_snake import image_from_world, load_snake, world_from_image
+from segsnake.saved_snake import image_from_world, load_snake, restart_record, world_from_image
 
 __all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes", "segment_file",
            "render_file"]
@@ -297,9 +297,10 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     config = resolve_markups(config, volume.world_to_index)
     config = resolve_centerline(config, centerline, volume.world_to_index, volume.spacing,
                                 volume.shape)
-    init_model = None
+    init_model = init_record = None
     if saved is not None:
         init_model, config = _start_from(saved, config, volume)
+        init_record = restart_record(config.init)
 
     extra = None
     if config.prior is not None and config.prior_weight > 0:
@@ -307,7 +308,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     try:
         result = segment_volume(volume.data, volume.spacing, config,
                                 index_from_world=volume.world_to_index, progress=progress,
-                                extra_energy=extra, init_model=init_model)
+                                extra_energy=extra, init_model=init_model,
+                                init_record=init_record)
     except (ConfigError, SegmentationError) as exc:
         _with_image_name(exc, image_path)
         raise

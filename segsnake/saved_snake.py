@@ -41,8 +41,8 @@ from segsnake.io import _LPS_TO_RAS
 from segsnake.markups import document_points, read_json
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, model_from_dict
 
-__all__ = ["MARKUPS_SCHEMA", "TAG", "load_snake", "snake_markups", "world_from_image",
-           "image_from_world"]
+__all__ = ["MARKUPS_SCHEMA", "TAG", "load_snake", "restart_record", "snake_markups",
+           "world_from_image", "image_from_world"]
 
 MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/"
                   "Markups/Resources/Schema/markups-schema-v1.0.3.json#")
@@ -256,3 +256,15 @@ def load_snake(path: str) -> SplineSurface:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"{path}: not a readable segsnake result ({msg})") from None
     return world_from_image(model, affine, spacing)
+
+
+def restart_record(path: str) -> dict[str, Any] | None:
+    """The ``restart`` record of a ``snake.json`` written by ``segment`` (what defines the energy
+    its last stage ended in, :func:`segsnake.pipeline._segment_region`), or None: a markups file,
+    a ``render`` output or a result without one. Read after :func:`load_snake` accepted the file.
+    """
+    doc = read_json(path, "snake file")
+    if not isinstance(doc, dict) or doc.get("format") != "segsnake-result":
+        return None
+    record = (doc.get("settings") or {}).get("restart")
+    return record if isinstance(record, dict) else None

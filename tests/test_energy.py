@@ -95,6 +95,39 @@ def test_minimizing_blob_flux_grows_sphere_to_the_laplacian_zero_crossing():
     assert np.abs(np.linalg.norm(sig, axis=-1) - r_star).max() < 0.02
 
 
+class _LevelBlob(AnalyticSampler):
+    """The blob minus a level h0: the optimum sphere is the blob's h = h0 level set."""
+
+    def sample(self, p):
+        G, dG = super().sample(p)
+        return G - 0.3 * p[:, 0], dG - np.array([0.3, 0, 0])
+
+
+def test_stationarity_is_the_first_order_decrease_and_a_restart_at_it_takes_no_step():
+    from scipy.linalg import cho_factor, cho_solve
+
+    from segsnake.optimize import _displacement_operator, stationarity, surface_metric
+
+    model = SphereModel.ellipsoid([0, 0, 0], [1.0, 1.2, 0.8], m1=6, m2=6)
+    energy = FluxTerm(model, _LevelBlob("blob", s=2.0), weight=-1.0)
+    # The number is the relative decrease of a step_mm move along -M^-1 g, to first order.
+    f, g = energy.value_and_grad(model.params)
+    d = -cho_solve(cho_factor(surface_metric(model)), g)
+    step = 1e-4
+    d *= step / np.max(np.linalg.norm(_displacement_operator(model) @ d, axis=1))
+    decrease = (f - energy.value_and_grad(model.params + d)[0]) / abs(f)
+    assert abs(stationarity(model, f, g, step) - decrease) < 1e-3 * decrease
+    # Minimized to stationarity, restarted at its end: no step, the same energy to the bit.
+    res = minimize_energy(model, energy, tol=1e-5, stationary_tol=1e-5)
+    assert res.message.startswith("stationary") and res.stationarity <= 1e-5
+    again = minimize_energy(res.model, energy, tol=1e-5, stationary_tol=1e-5)
+    assert again.iterations == 0 and again.energy == res.energy
+    assert np.array_equal(again.model.params, res.model.params)
+    # The relative-change rule alone needs `window` iterations before it can stop, and moves.
+    plain = minimize_energy(res.model, energy, tol=1e-5)
+    assert plain.iterations >= 5 and not np.array_equal(plain.model.params, res.model.params)
+
+
 def test_axial_tension_is_the_distance_between_the_end_rings_centres():
     from segsnake.energy import AxialTension
 
