@@ -43,6 +43,18 @@ sys.exit(main(sys.argv[2:], exit_process=mode == "default"))
 """
 
 
+BALL512 = """
+import sys, numpy as np, nibabel as nib
+n = 512
+g = np.indices((n, n, n), dtype=np.float32)
+r = np.sqrt(sum((g[a] - 300.0) ** 2 for a in range(3)))
+del g
+image = np.where(r < 12.0, 1.0, 0.0).astype(np.float32)
+image += np.random.default_rng(512).normal(0, 0.1, image.shape).astype(np.float32)
+nib.save(nib.Nifti1Image(image, np.eye(4)), sys.argv[1])
+"""
+
+
 def make_case(name: str, tmp: Path) -> tuple[list[str], tuple[int, int, int]]:
     """The ``segment`` arguments of a case and its grid shape."""
     if name == "colin27":
@@ -58,18 +70,11 @@ def make_case(name: str, tmp: Path) -> tuple[list[str], tuple[int, int, int]]:
         return [str(out / "image.nii.gz"), "--center", *map(str, init["center"]), "--radii",
                 *map(str, init["radii"])], (256, 256, 256)
     if name == "ball512":
-        import nibabel as nib
-
-        n = 512
-        g = np.indices((n, n, n), dtype=np.float32)
-        r = np.sqrt(sum((g[a] - 300.0) ** 2 for a in range(3)))
-        del g
-        image = np.where(r < 12.0, 1.0, 0.0).astype(np.float32)
-        image += np.random.default_rng(512).normal(0, 0.1, image.shape).astype(np.float32)
+        # (made in a child process: a child's peak counts the parent's resident memory at its
+        # start, which the image's temporaries would inflate)
         path = tmp / "ball512.nii.gz"
-        nib.save(nib.Nifti1Image(image, np.eye(4)), str(path))
-        del image, r
-        return [str(path), "--center", "300", "300", "300", "--radii", "6", "6", "6"], (n, n, n)
+        subprocess.run([sys.executable, "-c", BALL512, str(path)], check=True)
+        return [str(path), "--center", "300", "300", "300", "--radii", "6", "6", "6"], (512,) * 3
     raise SystemExit(f"unknown case {name}")
 
 

@@ -57,9 +57,10 @@ __all__ = [
 # benchmarks/bench_features.py (about 92 at 181 x 217 x 181) with a margin for the snake.
 PIPELINE_BYTES_PER_VOXEL = 160.0
 # The same for the region energy (filled objects), whose arrays live in a window around the
-# surface: at worst the whole volume, measured 34 bytes per voxel beyond the libraries (a ball
-# filling a 256^3 volume: 715 MB peak, 150 MB of it the libraries), with a margin.
-REGION_BYTES_PER_VOXEL = 48.0
+# surface: at worst the whole volume, measured 17 bytes per voxel beyond the ~100 MiB of the
+# libraries (a ball filling a 256^3 volume: 371 MiB peak) and 23 (the Colin27 brain, 181 x 217
+# x 181: 257 MiB; benchmarks/bench_memory.py), with a margin.
+REGION_BYTES_PER_VOXEL = 32.0
 
 # Address space a run takes beyond its arrays after the memory check: libraries loaded later
 # (VTK, SimpleITK's writers), thread stacks and per-thread malloc arenas. Measured: 461 MB from the

@@ -556,12 +556,12 @@ def test_fault_injection_batch_50(tmp_path):
 
 
 def test_the_up_front_memory_estimate_follows_the_energy():
-    # The region energy works in a window around the surface (34 B/voxel measured at worst);
+    # The region energy works in a window around the surface (23 B/voxel measured at worst);
     # the edge stages build full-volume edge maps (92 B/voxel measured).
     from segsnake.config import SegmentConfig
     from segsnake.io import PIPELINE_BYTES_PER_VOXEL, REGION_BYTES_PER_VOXEL
     from segsnake.runner import _bytes_per_voxel
 
-    assert _bytes_per_voxel(SegmentConfig()) == REGION_BYTES_PER_VOXEL == 48.0
+    assert _bytes_per_voxel(SegmentConfig()) == REGION_BYTES_PER_VOXEL == 32.0
     assert _bytes_per_voxel(SegmentConfig().replace(shape="cylinder")) == REGION_BYTES_PER_VOXEL
     assert _bytes_per_voxel(SegmentConfig().replace(feature="surface")) == PIPELINE_BYTES_PER_VOXEL
