@@ -12,12 +12,13 @@ closed at its ends by planar caps through the end rings as its mask and volume a
   **area** and **centroid** are Green's formula in the plane (Gauss-Legendre, :data:`AREA_ORDER`
   nodes per knot interval around, or along a capped section's arc: 1e-12 or better on the
   tests' cylinders, capped sections included; where the cut crosses a knot line along ``v``
-  its integrand is only C1 there and the rule converges more slowly). The **equivalent diameter** is ``2 sqrt(A / pi)``; the **minimum and
-  maximum diameters** are the smallest and largest caliper widths of the section curve: the width
-  along :data:`CALIPER_DIRECTIONS` directions over 180 degrees (every degree), each from
-  :data:`CALIPER_SAMPLES` curve points per knot interval around, both the extreme point of a
-  direction and the extreme direction refined by a parabola through their neighbours (below
-  1e-7 of the diameter on circles and on ellipses of aspect 2 and 4, ``tests/test_profile.py``).
+  its integrand is only C1 there and the rule converges more slowly). The **equivalent
+  diameter** is ``2 sqrt(A / pi)``; the **minimum and maximum diameters** are the smallest and
+  largest caliper widths of the section curve: the width along :data:`CALIPER_DIRECTIONS`
+  directions over 180 degrees (every degree), each from :data:`CALIPER_SAMPLES` curve points
+  per knot interval around, both the extreme point of a direction and the extreme direction
+  refined by a parabola through their neighbours (below 1e-7 of the diameter on circles and on
+  ellipses of aspect 2 and 4, ``tests/test_profile.py``).
 * **Where the plane leaves the tube.** A section is first cut all around; if some line ``u =
   const`` does not cross the plane, or the cut jumps (below), the plane may leave the tube
   through an end cap: near an end whose cap is not normal to the centerline (a tube leaving
@@ -88,9 +89,11 @@ CALIPER_DIRECTIONS = 180
 SECTION_BRACKETS = 8
 #: Newton steps (bisection when a step leaves the bracket) for a crossing, at most.
 CROSSING_ITERATIONS = 60
-#: The centerline's iteration: passes at most, and the centroid shift (mm) that ends it.
+#: The centerline's iteration: passes at most, the centroid shift (mm) that ends it, and the
+#: Gauss-Legendre nodes per knot interval of its sections (centroids to ~1e-8 of the radius).
 CENTERLINE_ITERATIONS = 12
-CENTERLINE_TOL_MM = 1e-4
+CENTERLINE_TOL_MM = 1e-3
+CENTERLINE_ORDER = 8
 #: Stations per knot interval along the tube, at least (short tubes), for the centerline.
 STATIONS_PER_INTERVAL = 4
 #: Complete sections needed for the sections' centerline (else the ring centroids).
@@ -434,10 +437,10 @@ def _cap_candidates(surf: _Surface, p: NDArray, t: NDArray, idx: NDArray
             np.concatenate([cross[:, 1], cross[:, 0] + 1.0]))
 
 
-def _arc_nodes(m1: int, ua: NDArray, ub: NDArray) -> tuple[NDArray, NDArray]:
-    """Gauss-Legendre nodes and weights on ``[ua, ub]``, :data:`AREA_ORDER` per piece between
-    the knots ``k / M1`` inside (pieces padded to ``M1 + 1`` per arc, empty ones weigh 0)."""
-    x, w = np.polynomial.legendre.leggauss(AREA_ORDER)
+def _arc_nodes(m1: int, ua: NDArray, ub: NDArray, order: int) -> tuple[NDArray, NDArray]:
+    """Gauss-Legendre nodes and weights on ``[ua, ub]``, ``order`` per piece between the knots
+    ``k / M1`` inside (pieces padded to ``M1 + 1`` per arc, empty ones weigh 0)."""
+    x, w = np.polynomial.legendre.leggauss(order)
     n = len(ua)
     bounds = np.empty((n, m1 + 2))
     for i in range(n):
@@ -515,8 +518,8 @@ def _measure(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, uu: NDArray, w
     return moments, whole & np.all(np.isfinite(moments), axis=1), many
 
 
-def _sections(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray,
-              calipers: bool) -> _Sections:
+def _sections(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, calipers: bool,
+              order: int = AREA_ORDER) -> _Sections:
     """The sections by the planes through ``p`` normal to ``t`` (see the module's notes): the
     whole cut around if every ``u`` crosses the plane without a jump; else the first cap
     candidate (:func:`_cap_candidates`) whose arc does (the end ring nearest first); else
@@ -525,14 +528,14 @@ def _sections(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray,
     n = len(p)
     status = np.full(n, _DROPPED)
     end, ua, ub = np.zeros(n), np.zeros(n), np.zeros(n)
-    u, w = gauss_legendre_grid(model.m1, AREA_ORDER)
+    u, w = gauss_legendre_grid(model.m1, order)
     moments, whole, crossed = _measure(surf, p, t, v0, np.broadcast_to(u, (n, len(u))),
                                        np.broadcast_to(w, (n, len(u))), None)
     status[whole] = _FULL
     st, ve, ca, cb = _cap_candidates(surf, p, t, np.flatnonzero(~whole))
     if len(st):
         # The arc's own ends (weight 0) too, so that a jump next to the cap is seen.
-        nodes, weights = _arc_nodes(model.m1, ca, cb)
+        nodes, weights = _arc_nodes(model.m1, ca, cb, order)
         uu = np.column_stack([ca, nodes, cb])
         ww = np.column_stack([np.zeros(len(st)), weights, np.zeros(len(st))])
         m_cap, ok, many = _measure(surf, p[st], t[st], v0[st], uu, ww, (ve, ca, cb))
@@ -687,7 +690,7 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
     caps = _cap_planes(model)
     best, best_shift = rings, np.inf
     for _ in range(CENTERLINE_ITERATIONS):
-        sec = _sections(surf, p, t, v, calipers=False)
+        sec = _sections(surf, p, t, v, calipers=False, order=CENTERLINE_ORDER)
         moved = np.linalg.norm(sec.centroid - p, axis=1)
         # A centroid more than half its section's radius from the station is not a small
         # correction of the curve but a section gone wrong (a pinched or folded stretch): it is
