@@ -1,39 +1,76 @@
 """A tube's profile along its centerline, exact from a cylinder snake's spline (what a vessel or
 airway study measures; VMTK's centerline sections).
 
-For a :class:`~segsnake.surfaces.CylinderModel` ``sigma(u, v)`` (in mm: world mm for the outputs):
+For a :class:`~segsnake.surfaces.CylinderModel` ``sigma(u, v)`` (in mm: world mm for the outputs),
+closed at its ends by planar caps through the end rings as its mask and volume are:
 
-* the **centerline** ``c(v)`` is the centroid of the ring ``sigma(., v)``, ``integral_0^1
-  sigma(u, v) du``. Every periodic basis function around integrates to ``1 / M1`` (they are
-  shifts of one another and sum to one), so ``c(v)`` is exactly the Keys spline in ``v`` of the
-  mean control point of each row: no quadrature;
-* its **arc length** ``s(v) = integral_0^v |c'(w)| dw`` (Gauss-Legendre per knot interval,
-  :data:`ARC_ORDER` nodes), and the profile is sampled every ``spacing_mm`` of arc length from the
-  ``v = 0`` end, plus the ``v = 1`` end (Newton steps on ``s(v) = s_k`` to 1e-10 mm);
-* the **cross-section** at ``c(v)`` is the ring projected onto the plane normal to the tangent
-  ``T = c' / |c'|``. Its **area** is Green's formula in that plane, ``A = 1/2 |T . integral_0^1
-  (sigma - c) x sigma_u du|`` (Gauss-Legendre, :data:`AREA_ORDER` nodes per knot interval
-  around: exact to rounding for the spline's rings). For a straight tube, whatever the rings'
-  tilt, this is the area of the cut perpendicular to the axis;
-* the **equivalent diameter** is ``2 sqrt(A / pi)``; the **minimum and maximum diameters** are
-  the smallest and largest caliper widths of the projected ring: the width along
-  :data:`CALIPER_DIRECTIONS` directions over 180 degrees (every degree), each width from
-  :data:`CALIPER_SAMPLES` ring points per knot interval around, and both the extreme ring point
-  of a direction and the extreme direction refined by a parabola through their neighbours.
-  Measured error: below 1e-7 of the diameter on circles and on ellipses of aspect 2 and 4
-  (``tests/test_profile.py``).
+* a **section** at a point ``p`` with unit normal ``T`` is the cut of that closed tube by the
+  plane ``(x - p) . T = 0``. For each ``u`` around, the ``v`` with ``(sigma(u, v) - p) . T = 0``
+  is bracketed on :data:`SECTION_BRACKETS` nodes per knot interval along ``v`` and solved by
+  safeguarded Newton on the exact spline (to rounding); the section curve ``q(u) = sigma(u,
+  v(u))`` has ``q' = sigma_u + sigma_v v'``, ``v' = -(sigma_u . T) / (sigma_v . T)``. Its
+  **area** and **centroid** are Green's formula in the plane (Gauss-Legendre, :data:`AREA_ORDER`
+  nodes per knot interval around, or along a capped section's arc: 1e-12 or better on the
+  tests' cylinders, capped sections included; where the cut crosses a knot line along ``v``
+  its integrand is only C1 there and the rule converges more slowly). The **equivalent
+  diameter** is ``2 sqrt(A / pi)``; the **minimum and maximum diameters** are the smallest and
+  largest caliper widths of the section curve: the width along :data:`CALIPER_DIRECTIONS`
+  directions over 180 degrees (every degree), each from :data:`CALIPER_SAMPLES` curve points
+  per knot interval around, both the extreme point of a direction and the extreme direction
+  refined by a parabola through their neighbours (below 1e-7 of the diameter on circles and on
+  ellipses of aspect 2 and 4, ``tests/test_profile.py``).
+* **Where the plane leaves the tube.** A section is first cut all around; if some line ``u =
+  const`` does not cross the plane, or the cut jumps (below), the plane may leave the tube
+  through an end cap: near an end whose cap is not normal to the centerline (a tube leaving
+  through an oblique face of the volume) the plane crosses the end ring twice, and the section
+  is the lateral cut on the arc between those crossings closed by the chord between them (the
+  cap's cut, exact for a planar cap): the section of the closed tube as its mask has it, and as
+  a truth clipped to the volume has it. Such rows are **capped** (``TubeProfile.capped``; their
+  calipers are the samples' extremes, within ``(pi / m)^2 / 2`` of the width, as the corners
+  would throw a parabola off). The two samples at the centerline's very ends lie on the caps:
+  a cap not normal to the centerline cuts their plane through its middle (about half the
+  section, jumping with the least tilt), so they are left out rather than reported. A sample
+  whose plane has no single section (crosses an end ring more than twice, misses part of the
+  tube, or the cut jumps on every candidate) is **dropped** (its arc length is kept in
+  ``TubeProfile.dropped_mm``). If no sample is left (a tube so short that every plane crosses
+  both caps), the rows are the rings projected on the normal planes instead, flagged
+  ``TubeProfile.projected``.
+* **Where the plane cuts the tube more than once** (a bend tighter than the plane's reach: the
+  other leg of an arch, a fold), the crossing nearest to the sample's own ``v`` is taken on each
+  line ``u = const`` and the row is flagged (``TubeProfile.crossed``). If that choice jumps
+  from one piece of the surface to another between neighbouring ``u`` (a chord between
+  neighbouring nodes more than twice the curve's ``|q'| du``), the cut is not a section.
+* the **centerline** is the curve of the sections' centroids, found by iteration: start from
+  the ring centroids ``c(v) = integral_0^1 sigma(u, v) du`` (exactly the Keys spline in ``v`` of
+  each row's mean control point), then repeatedly cut sections normal to the current curve at
+  stations every ``min(spacing, length / (4 M2))`` mm and pass a cubic spline (chord length,
+  not-a-knot) through the centroids of the complete sections, until no centroid moves by more
+  than :data:`CENTERLINE_TOL_MM` (at most :data:`CENTERLINE_ITERATIONS` passes; a pass that
+  moves them more than the one before ends it, and the better curve is kept). A centroid more
+  than half its section's radius from its station is not followed (a pinched or folded
+  stretch). Beyond the first and last complete sections the curve goes straight on along its end
+  tangents to the end caps' planes (a capped section's centroid is off the axis: the cap cut
+  part of it). Why not the ring centroids: a ring's mean point is not its section's centroid
+  where the rings tilt (into an oblique face, across a bend) or their points bunch on one side,
+  and a ring projected on the plane normal to that curve is not the section; a section's
+  centroid is on the axis of any straight tube and on a torus' centre circle. With fewer than
+  :data:`MIN_FULL_STATIONS` complete sections the ring centroids are the centerline.
+* the profile is sampled every ``spacing_mm`` of the centerline's arc length from its ``v = 0``
+  end, plus the far end.
 
 :func:`tube_profile` is the numerical core: a model in, arrays out, nothing read or written.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.interpolate import CubicSpline
 
+from segsnake.basis import keys
 from segsnake.surfaces import CylinderModel, gauss_legendre_grid
 
 __all__ = ["PROFILE_SPACING_MM", "PROFILE_COLUMNS", "TubeProfile", "ring_centroids",
@@ -41,16 +78,31 @@ __all__ = ["PROFILE_SPACING_MM", "PROFILE_COLUMNS", "TubeProfile", "ring_centroi
 
 #: Spacing of the profile's samples along the centerline (mm of arc length).
 PROFILE_SPACING_MM = 1.0
-#: Gauss-Legendre nodes per knot interval: along ``v`` for the arc length, around ``u`` for the
-#: area (the integrands are smooth inside each knot interval).
+#: Gauss-Legendre nodes per knot interval: along a curve for its arc length, around ``u`` for a
+#: section's area and centroid (the integrands are smooth inside each knot interval).
 ARC_ORDER = 8
 AREA_ORDER = 16
-#: Caliper widths: ring points per knot interval around, directions over 180 degrees.
+#: Caliper widths: section points per knot interval around, directions over 180 degrees.
 CALIPER_SAMPLES = 32
 CALIPER_DIRECTIONS = 180
+#: Nodes per knot interval along ``v`` on which a plane's crossing of the surface is bracketed.
+SECTION_BRACKETS = 8
+#: Newton steps (bisection when a step leaves the bracket) for a crossing, at most.
+CROSSING_ITERATIONS = 60
+#: The centerline's iteration: passes at most, the centroid shift (mm) that ends it, and the
+#: Gauss-Legendre nodes per knot interval of its sections (centroids to ~1e-8 of the radius).
+CENTERLINE_ITERATIONS = 12
+CENTERLINE_TOL_MM = 1e-3
+CENTERLINE_ORDER = 8
+#: Stations per knot interval along the tube, at least (short tubes), for the centerline.
+STATIONS_PER_INTERVAL = 4
+#: Complete sections needed for the sections' centerline (else the ring centroids).
+MIN_FULL_STATIONS = 4
 #: The profile's columns (``profile.csv``'s header, ``snake.json``'s ``profile.columns``).
 PROFILE_COLUMNS = ("arc_length_mm", "x_mm", "y_mm", "z_mm", "area_mm2", "equivalent_diameter_mm",
                    "min_diameter_mm", "max_diameter_mm")
+
+_FULL, _CAPPED, _DROPPED = 0, 1, -1
 
 
 @dataclass(frozen=True)
@@ -62,11 +114,12 @@ class TubeProfile:
     arc_mm : ndarray (n,)
         Arc length from the ``v = 0`` end (mm).
     v : ndarray (n,)
-        The samples' spline parameter along the tube.
+        The spline parameter along the tube the sample's section is centred on (the nearest
+        cut to it is the section).
     centerline : ndarray (n, 3)
-        The ring centroids (the model's coordinates, mm).
+        The sections' centerline (the model's coordinates, mm).
     tangent : ndarray (n, 3)
-        Unit tangents of the centerline.
+        Unit tangents of the centerline: the sections' normals.
     area : ndarray (n,)
         Cross-section area (mm^2).
     min_diameter, max_diameter : ndarray (n,)
@@ -75,6 +128,15 @@ class TubeProfile:
         The centerline's length.
     spacing_mm : float
         The sampling step along it.
+    capped : ndarray (n,) of bool
+        The section is closed by an end cap (its plane leaves the tube through an end ring).
+    crossed : ndarray (n,) of bool
+        The plane also cuts the tube elsewhere (a tight bend); the nearest cut is the section.
+    dropped_mm : ndarray (k,)
+        Arc lengths of the samples left out: no single section there.
+    projected : bool
+        No sample had a section (a tube so short that every plane crosses both end caps): the
+        rows are the rings projected on the planes normal to the centerline instead.
     """
 
     arc_mm: NDArray
@@ -86,6 +148,10 @@ class TubeProfile:
     max_diameter: NDArray
     length_mm: float
     spacing_mm: float
+    capped: NDArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    crossed: NDArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    dropped_mm: NDArray = field(default_factory=lambda: np.zeros(0))
+    projected: bool = False
 
     @property
     def equivalent_diameter(self) -> NDArray:
@@ -99,10 +165,14 @@ class TubeProfile:
 
     def to_dict(self, decimals: int = 4) -> dict[str, Any]:
         """A compact JSON-able form: spacing, length, columns and rows (rounded to
-        ``decimals``)."""
+        ``decimals``), and which rows are capped, which crossed, which arc lengths dropped."""
         return {"spacing_mm": self.spacing_mm, "length_mm": round(self.length_mm, decimals),
                 "columns": list(PROFILE_COLUMNS),
-                "rows": np.round(self.rows(), decimals).tolist()}
+                "rows": np.round(self.rows(), decimals).tolist(),
+                "capped_rows": np.flatnonzero(self.capped).tolist(),
+                "crossed_rows": np.flatnonzero(self.crossed).tolist(),
+                "dropped_arc_mm": np.round(self.dropped_mm, decimals).tolist(),
+                "projected_rings": self.projected}
 
 
 def ring_centroids(model: CylinderModel, v: NDArray) -> tuple[NDArray, NDArray]:
@@ -123,40 +193,47 @@ def ring_centroids(model: CylinderModel, v: NDArray) -> tuple[NDArray, NDArray]:
     return gb.Bv @ rows, gb.dBv @ rows
 
 
-def _speed(model: CylinderModel, v: NDArray) -> NDArray:
-    return np.linalg.norm(ring_centroids(model, v)[1], axis=-1)
+# --------------------------------------------------------------------------------------------
+# Arc length of a curve given its speed
+# --------------------------------------------------------------------------------------------
+
+Speed = Callable[[NDArray], NDArray]
 
 
-def _arc_table(model: CylinderModel) -> tuple[NDArray, NDArray]:
-    """Arc length at the knots ``v = l / M2``: (knots, cumulative length)."""
-    nodes, weights = gauss_legendre_grid(model.m2, ARC_ORDER)
-    per = (weights * _speed(model, nodes)).reshape(model.m2, ARC_ORDER).sum(axis=1)
-    knots = np.arange(model.m2 + 1) / model.m2
-    return knots, np.concatenate([[0.0], np.cumsum(per)])
-
-
-def _arc_to(model: CylinderModel, knots: NDArray, table: NDArray, v: NDArray) -> NDArray:
-    """Arc length ``s(v)`` for each ``v``: the table at the knot below plus the rest by
-    Gauss-Legendre on ``[knot, v]`` (the integrand is smooth there)."""
+def _arc_table(speed: Speed, knots: NDArray) -> NDArray:
+    """Arc length at ``knots`` (cumulative from the first): Gauss-Legendre per knot interval."""
     x, w = np.polynomial.legendre.leggauss(ARC_ORDER)
-    b = np.clip(np.searchsorted(knots, v, side="right") - 1, 0, model.m2 - 1)
+    half = np.diff(knots) / 2.0
+    pts = knots[:-1, None] + half[:, None] * (x[None, :] + 1.0)
+    per = half * (speed(pts.ravel()).reshape(pts.shape) @ w)
+    return np.concatenate([[0.0], np.cumsum(per)])
+
+
+def _arc_to(speed: Speed, knots: NDArray, table: NDArray, x: NDArray) -> NDArray:
+    """Arc length at parameters ``x``: the table at the knot below plus the rest by
+    Gauss-Legendre on ``[knot, x]`` (the integrand is smooth there)."""
+    gx, gw = np.polynomial.legendre.leggauss(ARC_ORDER)
+    b = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, len(knots) - 2)
     lo = knots[b]
-    half = (v - lo) / 2.0
-    pts = lo[:, None] + half[:, None] * (x[None, :] + 1.0)
-    speed = _speed(model, pts.ravel()).reshape(pts.shape)
-    return table[b] + half * (speed @ w)
+    half = (x - lo) / 2.0
+    pts = lo[:, None] + half[:, None] * (gx[None, :] + 1.0)
+    return table[b] + half * (speed(pts.ravel()).reshape(pts.shape) @ gw)
 
 
-def _parameters_at(model: CylinderModel, s: NDArray) -> NDArray:
-    """The ``v`` at which the arc length is ``s`` (Newton from linear interpolation)."""
-    knots, table = _arc_table(model)
-    v = np.interp(s, table, knots)
+def _parameters_at(speed: Speed, knots: NDArray, table: NDArray, s: NDArray) -> NDArray:
+    """The parameters at which the arc length is ``s`` (Newton from linear interpolation, to
+    1e-10 mm)."""
+    x = np.interp(s, table, knots)
     for _ in range(20):
-        step = (_arc_to(model, knots, table, v) - s) / np.maximum(_speed(model, v), 1e-300)
-        v = np.clip(v - step, 0.0, 1.0)
-        if np.max(np.abs(step * _speed(model, v)), initial=0.0) < 1e-10:
+        step = (_arc_to(speed, knots, table, x) - s) / np.maximum(speed(x), 1e-300)
+        x = np.clip(x - step, knots[0], knots[-1])
+        if np.max(np.abs(step * speed(x)), initial=0.0) < 1e-10:
             break
-    return v
+    return x
+
+
+def _unit(x: NDArray) -> NDArray:
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-300)
 
 
 def _plane_basis(t: NDArray) -> tuple[NDArray, NDArray]:
@@ -184,15 +261,471 @@ def _refined_extreme(values: NDArray, axis: int, largest: bool) -> NDArray:
     return top if largest else -top
 
 
-def _calipers(rings: NDArray) -> tuple[NDArray, NDArray]:
+def _calipers(rings: NDArray, smooth: bool = True) -> tuple[NDArray, NDArray]:
     """Smallest and largest caliper widths of closed planar curves sampled as ``rings (n, m,
-    2)``: the support values along :data:`CALIPER_DIRECTIONS` directions over 180 degrees."""
+    2)``: the support values along :data:`CALIPER_DIRECTIONS` directions over 180 degrees.
+
+    ``smooth``: the curves are smooth, so the extremes are refined by parabolas; a capped
+    section has corners where its chord meets its arc, where a parabola would overshoot, so its
+    extremes are the samples' (within about ``(pi / m)^2 / 2`` of the width)."""
     theta = np.pi * np.arange(CALIPER_DIRECTIONS) / CALIPER_DIRECTIONS
     d = np.stack([np.cos(theta), np.sin(theta)])  # (2, D)
     proj = rings @ d  # (n, m, D): each direction's support values along each ring
+    if not smooth:
+        width = proj.max(axis=1) - proj.min(axis=1)
+        return width.min(axis=1), width.max(axis=1)
     width = _refined_extreme(proj, 1, True) - _refined_extreme(proj, 1, False)  # (n, D)
     # The width has period pi in theta: the D directions are periodic samples.
     return _refined_extreme(width, 1, False), _refined_extreme(width, 1, True)
+
+
+# --------------------------------------------------------------------------------------------
+# Planar sections of the spline surface
+# --------------------------------------------------------------------------------------------
+
+
+class _Surface:
+    """A cylinder snake evaluated at scattered ``(u, v)``: the columns ``R(u) = sum_k
+    phi_k(u) c[k, .]`` (the surface restricted to one ``u``, a Keys spline in ``v``) first, then
+    ``v``. Scattered points, not a tensor grid, so not through ``grid_basis`` and its cache."""
+
+    def __init__(self, model: CylinderModel) -> None:
+        self.model = model
+        self.C = model.control_points()  # (M1, L, 3)
+        scale = float(np.ptp(self.C.reshape(-1, 3), axis=0).max()) or 1.0
+        #: Plane distances below this are zero: a plane through an end ring crosses it there.
+        self.zero = 1e-12 * scale
+        self.vgrid = np.linspace(0.0, 1.0, SECTION_BRACKETS * model.m2 + 1)
+        self.Bgrid = model._basis_v(self.vgrid, 0)  # (G, L)
+
+    def columns(self, u: NDArray) -> tuple[NDArray, NDArray]:
+        """``R(u)`` and ``R_u(u)``, each ``(len(u), L, 3)``."""
+        m1, n_l = self.C.shape[:2]
+        flat = self.C.reshape(m1, n_l * 3)
+        uu = np.mod(u, 1.0)
+        return ((self.model._basis_u(uu, 0) @ flat).reshape(-1, n_l, 3),
+                (self.model._basis_u(uu, 1) @ flat).reshape(-1, n_l, 3))
+
+    def at(self, R: NDArray, Ru: NDArray, v: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """sigma, sigma_u, sigma_v at ``(u_i, v_i)`` from the columns of ``u_i``: the four Keys
+        weights of each ``v`` (rows ``l0 - 1 .. l0 + 2`` of the knot interval ``l0``)."""
+        m2 = self.model.m2
+        x = m2 * np.asarray(v, dtype=np.float64)
+        l0 = np.clip(np.floor(x).astype(int), 0, m2 - 1)
+        cols = l0[:, None] + np.arange(4)[None, :]  # array index of l = l0 - 1 + j
+        t = x[:, None] - (cols - 1)
+        w, dw = keys(t), keys(t, 1) * m2
+        rows = np.arange(len(v))[:, None]
+        Rn, Run = R[rows, cols], Ru[rows, cols]  # (n, 4, 3)
+        return (np.einsum("nj,njd->nd", w, Rn), np.einsum("nj,njd->nd", w, Run),
+                np.einsum("nj,njd->nd", dw, Rn))
+
+
+def _cut(surf: _Surface, u: NDArray, p: NDArray, t: NDArray, v0: NDArray
+         ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Where the planes ``(x - p_i) . t_i = 0`` cut the surface along ``u = u[i, j]``.
+
+    Returns ``v (n, nu)`` (NaN where the line ``u = const`` does not cross the plane within ``0
+    <= v <= 1``), ``sigma, sigma_u, sigma_v`` there ``(n, nu, 3)``, and whether any ``u`` of a
+    plane crosses it more than once (the crossing nearest to ``v0[i]`` is kept)."""
+    n, nu = u.shape
+    vg = surf.vgrid
+    mid = 0.5 * (vg[:-1] + vg[1:])
+    v_out = np.full((n, nu), np.nan)
+    pts = np.full((n, nu, 3, 3), np.nan)
+    many = np.zeros(n, dtype=bool)
+    block = max(1, int(2_000_000 // (nu * len(vg))))
+    for a in range(0, n, block):
+        b = min(n, a + block)
+        R, Ru = surf.columns(u[a:b].ravel())
+        pp = np.repeat(p[a:b], nu, axis=0)
+        tt = np.repeat(t[a:b], nu, axis=0)
+        offset = np.einsum("nd,nd->n", pp, tt)
+        f = np.einsum("nld,nd->nl", R, tt) @ surf.Bgrid.T - offset[:, None]  # (m, G)
+        f[np.abs(f) <= surf.zero] = 0.0
+        br = f[:, :-1] * f[:, 1:] <= 0.0
+        starts = br & ~np.pad(br[:, :-1], ((0, 0), (1, 0)))  # separate crossings
+        many[a:b] = (starts.sum(axis=1) > 1).reshape(b - a, nu).any(axis=1)
+        near = np.where(br, np.abs(mid[None, :] - np.repeat(v0[a:b], nu)[:, None]), np.inf)
+        j = np.argmin(near, axis=1)
+        rows = np.flatnonzero(br[np.arange(len(j)), j])
+        j = j[rows]
+        lo, hi = vg[j], vg[j + 1]
+        flo, fhi = f[rows, j], f[rows, j + 1]
+        den = np.where(fhi == flo, 1.0, fhi - flo)
+        v = np.where(flo == 0.0, lo, np.where(fhi == 0.0, hi, lo - flo * (hi - lo) / den))
+        R, Ru, pr, tr, off = R[rows], Ru[rows], pp[rows], tt[rows], offset[rows]
+        for _ in range(CROSSING_ITERATIONS):
+            s, _, s_v = surf.at(R, Ru, v)
+            fv = np.einsum("nd,nd->n", s, tr) - off
+            slope = np.einsum("nd,nd->n", s_v, tr)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                newton = v - fv / slope
+            # Done: on the plane to rounding, or a Newton step below 1e-14 (of v in [0, 1]).
+            active = (np.abs(fv) > 1e-2 * surf.zero) & (hi - lo > 4e-16) & \
+                ~(np.abs(newton - v) < 1e-14)
+            if not active.any():
+                break
+            same = np.sign(fv) == np.sign(flo)
+            lo = np.where(active & same, v, lo)
+            flo = np.where(active & same, fv, flo)
+            hi = np.where(active & ~same, v, hi)
+            ok = np.isfinite(newton) & (newton > lo) & (newton < hi)
+            v = np.where(active, np.where(ok, newton, 0.5 * (lo + hi)), v)
+        flat_v = np.full(len(pp), np.nan)
+        flat_v[rows] = v
+        flat_pts = np.full((len(pp), 3, 3), np.nan)
+        flat_pts[rows] = np.stack(surf.at(R, Ru, v), axis=1)
+        v_out[a:b] = flat_v.reshape(b - a, nu)
+        pts[a:b] = flat_pts.reshape(b - a, nu, 3, 3)
+    return v_out, pts[:, :, 0], pts[:, :, 1], pts[:, :, 2], many
+
+
+def _sign_changes(f: NDArray) -> list[int]:
+    """Indices ``i`` of the periodic samples ``f`` after which the sign changes (zeros
+    skipped: the change is counted at the last non-zero sample before it)."""
+    nz = np.flatnonzero(f)
+    if len(nz) == 0:
+        return []
+    sg = np.sign(f[nz])
+    return [int(nz[i - 1]) for i in range(len(nz)) if sg[i] != sg[i - 1]]
+
+
+def _cap_candidates(surf: _Surface, p: NDArray, t: NDArray, idx: NDArray
+                    ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """The ways the planes ``idx`` may be closed by a cap: for each end ring the plane crosses
+    exactly twice, at ``u_1 < u_2``, both arcs ``[u_1, u_2]`` and ``[u_2, u_1 + 1]``.
+
+    Returns the station, the end's ``v`` and the arc ``(u_a, u_b)`` of each candidate. The
+    crossings are found on :data:`CALIPER_SAMPLES` ring points per knot interval, then to
+    rounding by bisection on the exact ring."""
+    model = surf.model
+    k = CALIPER_SAMPLES * model.m1
+    ud = np.arange(k) / k
+    rings = model.evaluate(ud, [0.0, 1.0])[0]  # (k, 2, 3)
+    f = np.einsum("ked,nd->nek", rings, t[idx]) - np.einsum("nd,nd->n", p[idx], t[idx])[:, None,
+                                                                                          None]
+    f[np.abs(f) <= surf.zero] = 0.0
+    found = []  # (station, end, bracket start, bracket end) per crossing, in pairs
+    for i, station in enumerate(idx):
+        for e in (0, 1):
+            changes = _sign_changes(f[i, e])
+            if len(changes) != 2:
+                continue
+            for j in changes:
+                nxt = np.flatnonzero(np.roll(f[i, e], -(j + 1)))[0] + j + 1  # next non-zero
+                found.append((station, e, ud[j], nxt / k))  # nxt / k may pass 1: around
+    if not found:
+        return np.zeros(0, dtype=int), np.zeros(0), np.zeros(0), np.zeros(0)
+    st, ends, lo, hi = (np.array(x) for x in zip(*found))
+    pc, tc, ve = p[st], t[st], ends.astype(float)
+
+    def g(u: NDArray) -> NDArray:
+        return np.einsum("nd,nd->n", model(np.mod(u, 1.0), ve) - pc, tc)
+
+    glo = g(lo)
+    for _ in range(60):  # bisection: the crossings to rounding
+        mid = 0.5 * (lo + hi)
+        gm = g(mid)
+        left = np.sign(gm) == np.sign(glo)
+        lo, glo = np.where(left, mid, lo), np.where(left, gm, glo)
+        hi = np.where(left, hi, mid)
+    cross = np.sort(np.mod(0.5 * (lo + hi), 1.0).reshape(-1, 2), axis=1)
+    st, ve = st[::2], ve[::2]
+    return (np.concatenate([st, st]), np.concatenate([ve, ve]),
+            np.concatenate([cross[:, 0], cross[:, 1]]),
+            np.concatenate([cross[:, 1], cross[:, 0] + 1.0]))
+
+
+def _arc_nodes(m1: int, ua: NDArray, ub: NDArray, order: int) -> tuple[NDArray, NDArray]:
+    """Gauss-Legendre nodes and weights on ``[ua, ub]``, ``order`` per piece between the knots
+    ``k / M1`` inside (pieces padded to ``M1 + 1`` per arc, empty ones weigh 0)."""
+    x, w = np.polynomial.legendre.leggauss(order)
+    n = len(ua)
+    bounds = np.empty((n, m1 + 2))
+    for i in range(n):
+        knots = np.arange(np.floor(ua[i] * m1) + 1, np.ceil(ub[i] * m1)) / m1
+        inside = np.concatenate([[ua[i]], knots, [ub[i]]])
+        bounds[i] = np.concatenate([inside, np.full(m1 + 2 - len(inside), ub[i])])
+    lo, half = bounds[:, :-1], np.diff(bounds, axis=1) / 2.0
+    nodes = lo[..., None] + half[..., None] * (x + 1.0)
+    return nodes.reshape(n, -1), (half[..., None] * w).reshape(n, -1)
+
+
+def _green(rel: NDArray, dq: NDArray, w: NDArray, e1: NDArray, e2: NDArray
+           ) -> tuple[NDArray, NDArray, NDArray]:
+    """Signed area and first moments (in the plane's ``e1, e2``) of the curve's Green integrals:
+    ``A = 1/2 int (a b' - b a')``, ``M_a = 1/2 int a^2 b'``, ``M_b = -1/2 int b^2 a'``."""
+    a, b = np.einsum("nud,nd->nu", rel, e1), np.einsum("nud,nd->nu", rel, e2)
+    da, db = np.einsum("nud,nd->nu", dq, e1), np.einsum("nud,nd->nu", dq, e2)
+    return (0.5 * np.sum(w * (a * db - b * da), axis=1), 0.5 * np.sum(w * a * a * db, axis=1),
+            -0.5 * np.sum(w * b * b * da, axis=1))
+
+
+def _chord(P: NDArray, Q: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """The same integrals along the segments ``P -> Q`` (plane coordinates ``(n, 2)``), exact."""
+    (pa, pb), (qa, qb) = P.T, Q.T
+    return (0.5 * (pa * qb - pb * qa), 0.5 * (qb - pb) * (pa * pa + pa * qa + qa * qa) / 3.0,
+            -0.5 * (qa - pa) * (pb * pb + pb * qb + qb * qb) / 3.0)
+
+
+def _broken(s: NDArray, dq: NDArray, u: NDArray, closed: bool, tol: float) -> NDArray:
+    """Whether a cut jumps between two pieces of the surface (a plane that cuts the tube more
+    than once, where the crossing nearest to the sample's ``v`` is on one piece for some ``u``
+    and on another for the next): a chord between neighbouring nodes more than twice the
+    length ``|q'| du`` the curve would have there."""
+    if closed:
+        s = np.concatenate([s, s[:, :1]], axis=1)
+        dq = np.concatenate([dq, dq[:, :1]], axis=1)
+        u = np.concatenate([u, u[:, :1] + 1.0], axis=1)
+    with np.errstate(invalid="ignore"):
+        chord = np.linalg.norm(np.diff(s, axis=1), axis=-1)
+        speed = np.linalg.norm(dq, axis=-1)
+        expect = 0.5 * (speed[:, 1:] + speed[:, :-1]) * np.diff(u, axis=1)
+        return np.any(chord > 2.0 * expect + 1e3 * tol, axis=1)
+
+
+@dataclass
+class _Sections:
+    status: NDArray
+    area: NDArray
+    centroid: NDArray
+    crossed: NDArray
+    min_diameter: NDArray
+    max_diameter: NDArray
+
+
+def _measure(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, uu: NDArray, ww: NDArray,
+             cap: tuple[NDArray, NDArray, NDArray] | None) -> tuple[NDArray, NDArray, NDArray]:
+    """Green's integrals ``(A, M_a, M_b)`` of the cuts along ``uu`` (weights ``ww``), closed by
+    the cap's chord when ``cap = (end, u_a, u_b)``; whether each cut is whole (every ``u``
+    crosses, no jump) and whether its plane cuts the tube elsewhere too."""
+    e1, e2 = _plane_basis(t)
+    v, s, s_u, s_v, many = _cut(surf, uu, p, t, v0)
+    tt = t[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dv = -np.sum(s_u * tt, axis=-1) / np.sum(s_v * tt, axis=-1)
+    dq = s_u + s_v * dv[..., None]
+    moments = np.stack(_green(s - p[:, None, :], dq, ww, e1, e2), axis=1)
+    if cap is not None:  # closed by the cap's chord from the arc's end back to its start
+        end, ua, ub = cap
+        plane = [np.stack([np.einsum("nd,nd->n", q - p, e1), np.einsum("nd,nd->n", q - p, e2)],
+                          axis=1) for q in (surf.model(np.mod(ub, 1.0), end),
+                                            surf.model(np.mod(ua, 1.0), end))]
+        moments += np.stack(_chord(*plane), axis=1)
+    whole = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(dv), axis=1)
+    whole &= ~_broken(s, dq, uu, closed=cap is None, tol=surf.zero)
+    return moments, whole & np.all(np.isfinite(moments), axis=1), many
+
+
+def _sections(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, calipers: bool,
+              order: int = AREA_ORDER) -> _Sections:
+    """The sections by the planes through ``p`` normal to ``t`` (see the module's notes): the
+    whole cut around if every ``u`` crosses the plane without a jump; else the first cap
+    candidate (:func:`_cap_candidates`) whose arc does (the end ring nearest first); else
+    dropped."""
+    model = surf.model
+    n = len(p)
+    status = np.full(n, _DROPPED)
+    end, ua, ub = np.zeros(n), np.zeros(n), np.zeros(n)
+    u, w = gauss_legendre_grid(model.m1, order)
+    moments, whole, crossed = _measure(surf, p, t, v0, np.broadcast_to(u, (n, len(u))),
+                                       np.broadcast_to(w, (n, len(u))), None)
+    status[whole] = _FULL
+    st, ve, ca, cb = _cap_candidates(surf, p, t, np.flatnonzero(~whole))
+    if len(st):
+        # The arc's own ends (weight 0) too, so that a jump next to the cap is seen.
+        nodes, weights = _arc_nodes(model.m1, ca, cb, order)
+        uu = np.column_stack([ca, nodes, cb])
+        ww = np.column_stack([np.zeros(len(st)), weights, np.zeros(len(st))])
+        m_cap, ok, many = _measure(surf, p[st], t[st], v0[st], uu, ww, (ve, ca, cb))
+        order = np.lexsort((np.abs(ve - v0[st]), st))  # per station, the nearer end first
+        for c in order:
+            i = st[c]
+            if ok[c] and status[i] == _DROPPED:
+                status[i], end[i], ua[i], ub[i] = _CAPPED, ve[c], ca[c], cb[c]
+                moments[i], crossed[i] = m_cap[c], many[c]
+    a_signed = moments[:, 0]
+    status[(status != _DROPPED) & ~(np.abs(a_signed) > 0)] = _DROPPED
+    ok = status != _DROPPED
+    area = np.where(ok, np.abs(a_signed), np.nan)
+    e1, e2 = _plane_basis(t)
+    centroid = np.full((n, 3), np.nan)
+    centroid[ok] = (p[ok] + (moments[ok, 1] / a_signed[ok])[:, None] * e1[ok]
+                    + (moments[ok, 2] / a_signed[ok])[:, None] * e2[ok])
+    dmin, dmax = np.full(n, np.nan), np.full(n, np.nan)
+    if calipers:
+        _section_calipers(surf, p, t, v0, status, end, ua, ub, e1, e2, dmin, dmax)
+    return _Sections(status, area, centroid, crossed & ok, dmin, dmax)
+
+
+def _section_calipers(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, status: NDArray,
+                      end: NDArray, ua: NDArray, ub: NDArray, e1: NDArray, e2: NDArray,
+                      dmin: NDArray, dmax: NDArray) -> None:
+    """Caliper widths of the sections (in place): a complete section's curve at
+    :data:`CALIPER_SAMPLES` points per knot interval around; a capped one's lateral arc at as
+    many points, then its chord."""
+    model = surf.model
+    k = CALIPER_SAMPLES * model.m1
+    for kind in (_FULL, _CAPPED):
+        idx = np.flatnonzero(status == kind)
+        if not len(idx):
+            continue
+        if kind == _FULL:
+            uu = np.broadcast_to(np.arange(k) / k, (len(idx), k))
+        else:
+            uu = ua[idx, None] + (ub - ua)[idx, None] * np.linspace(0.0, 1.0, k)[None, :]
+        v, s, _, _, _ = _cut(surf, uu, p[idx], t[idx], v0[idx])
+        curve = s
+        if kind == _CAPPED:  # the chord back from the arc's end to its start
+            frac = np.linspace(0.0, 1.0, CALIPER_SAMPLES + 1)[1:-1, None]
+            qa, qb = s[:, 0], s[:, -1]
+            chord = qb[:, None, :] + frac[None] * (qa - qb)[:, None, :]
+            curve = np.concatenate([s, chord], axis=1)
+        bad = ~np.all(np.isfinite(v), axis=1)
+        status[idx[bad]] = _DROPPED
+        good = idx[~bad]
+        rel = curve[~bad] - p[good][:, None, :]
+        for j in range(0, len(good), 64):  # in blocks: the support values of 64 curves at once
+            g = good[j:j + 64]
+            plane = np.stack([np.einsum("nmd,nd->nm", rel[j:j + 64], e[g]) for e in (e1, e2)], -1)
+            dmin[g], dmax[g] = _calipers(plane, smooth=kind == _FULL)
+
+
+# --------------------------------------------------------------------------------------------
+# The centerline
+# --------------------------------------------------------------------------------------------
+
+
+def _cap_planes(model: CylinderModel) -> list[tuple[NDArray, NDArray]]:
+    """Each end cap's plane: the end ring's centroid and unit vector area (zero if the ring
+    has closed to a point)."""
+    u, wu = gauss_legendre_grid(model.m1, AREA_ORDER)
+    s, su, _ = model.evaluate(u, [0.0, 1.0])
+    out = []
+    for j in (0, 1):
+        c = wu @ s[:, j]
+        vec = 0.5 * (wu @ np.cross(s[:, j] - c, su[:, j]))
+        size = np.linalg.norm(vec)
+        out.append((c, vec / size if size > 0 else vec))
+    return out
+
+
+def _to_cap(point: NDArray, direction: NDArray, cap: tuple[NDArray, NDArray]) -> float:
+    """How far along ``direction`` from ``point`` the cap's plane is (>= 0); the foot of the
+    cap's centroid on that line when the line runs nearly along the cap (< 15 degrees)."""
+    c, n = cap
+    along = float(direction @ n)
+    d = float((c - point) @ n) / along if abs(along) > 0.25 else float((c - point) @ direction)
+    return max(d, 0.0)
+
+
+class _Curve:
+    """A centerline by arc length: straight from the head to the first point along the first
+    tangent, the cubic spline (chord length, not-a-knot) through ``points``, straight on to the
+    tail along the last tangent."""
+
+    def __init__(self, points: NDArray, v: NDArray,
+                 caps: list[tuple[NDArray, NDArray]] | None) -> None:
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-12])
+        points, v = points[keep], v[keep]
+        self.knots = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0),
+                                                                     axis=1))])
+        self.spline = CubicSpline(self.knots, points, bc_type="not-a-knot"
+                                  if len(points) > 3 else "natural")
+        self.table = _arc_table(self._speed, self.knots)
+        self.t0 = _unit(self.spline(self.knots[0], 1))
+        self.t1 = _unit(self.spline(self.knots[-1], 1))
+        self.p0, self.p1 = points[0], points[-1]
+        self.head = _to_cap(self.p0, -self.t0, caps[0]) if caps else 0.0
+        self.tail = _to_cap(self.p1, self.t1, caps[1]) if caps else 0.0
+        self.inner = float(self.table[-1])
+        self.length = self.head + self.inner + self.tail
+        self.arc_v = (np.concatenate([[0.0], self.head + self.table, [self.length]]),
+                      np.concatenate([[0.0], v, [1.0]]))
+        if self.head == 0.0:
+            self.arc_v = (self.arc_v[0][1:], self.arc_v[1][1:])
+        if self.tail == 0.0:
+            self.arc_v = (self.arc_v[0][:-1], self.arc_v[1][:-1])
+
+    def _speed(self, x: NDArray) -> NDArray:
+        return np.linalg.norm(self.spline(x, 1), axis=-1)
+
+    def at(self, s: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """Points, unit tangents and the tube's parameter ``v`` at arc lengths ``s``."""
+        r = np.clip(s - self.head, 0.0, self.inner)
+        x = _parameters_at(self._speed, self.knots, self.table, r)
+        pts, tan = self.spline(x), _unit(self.spline(x, 1))
+        before, after = s < self.head, s > self.head + self.inner
+        pts[before] = self.p0 + (s[before] - self.head)[:, None] * self.t0
+        tan[before] = self.t0
+        pts[after] = self.p1 + (s[after] - self.head - self.inner)[:, None] * self.t1
+        tan[after] = self.t1
+        return pts, tan, np.interp(s, *self.arc_v)
+
+
+def _samples(length: float, step: float) -> NDArray:
+    """``0, step, 2 step, ...`` up to ``length``, and ``length``."""
+    s = np.arange(int(np.floor(length / step + 1e-9)) + 1) * step
+    if length - s[-1] > 1e-9 * max(length, 1.0):
+        s = np.append(s, length)
+    return s
+
+
+def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
+    """The sections' centerline (see the module's notes)."""
+    model = surf.model
+    knots = np.arange(model.m2 + 1) / model.m2
+
+    def speed(v: NDArray) -> NDArray:
+        return np.linalg.norm(ring_centroids(model, v)[1], axis=-1)
+
+    table = _arc_table(speed, knots)
+    length = float(table[-1])
+    step = min(spacing_mm, length / (STATIONS_PER_INTERVAL * model.m2))
+    v = _parameters_at(speed, knots, table, _samples(length, step))
+    p, dp = ring_centroids(model, v)
+    rings = _Curve(p, v, None)  # the fallback
+    t = _unit(dp)
+    caps = _cap_planes(model)
+    best, best_shift = rings, np.inf
+    for _ in range(CENTERLINE_ITERATIONS):
+        sec = _sections(surf, p, t, v, calipers=False, order=CENTERLINE_ORDER)
+        moved = np.linalg.norm(sec.centroid - p, axis=1)
+        # A centroid more than half its section's radius from the station is not a small
+        # correction of the curve but a section gone wrong (a pinched or folded stretch): it is
+        # not followed.
+        use = (sec.status == _FULL) & (moved < 0.5 * np.sqrt(sec.area / np.pi))
+        if use.sum() < MIN_FULL_STATIONS:
+            break
+        shift = float(np.max(moved[use]))
+        if shift >= best_shift and best is not rings:
+            break  # not converging: keep the best curve so far
+        best, best_shift = _Curve(sec.centroid[use], v[use], caps), shift
+        if shift <= CENTERLINE_TOL_MM:
+            break
+        p, t, v = best.at(_samples(best.length, min(step, best.length / (
+            STATIONS_PER_INTERVAL * model.m2))))
+    return best
+
+
+def _projected_rings(model: CylinderModel, curve: _Curve, s: NDArray, p: NDArray, t: NDArray,
+                     v: NDArray, spacing_mm: float) -> TubeProfile:
+    """The last resort when no sample has a section (a tube so short that every plane crosses
+    both caps): each ring ``sigma(., v)`` projected on the plane normal to the centerline, its
+    area by Green's formula there and its calipers; every row flagged ``projected``."""
+    u, wu = gauss_legendre_grid(model.m1, AREA_ORDER)
+    sig, sig_u, _ = model.evaluate(u, v)  # (nu, n, 3)
+    vec = 0.5 * np.einsum("u,unk->nk", wu, np.cross(sig - p[None], sig_u))
+    area = np.abs(np.einsum("nk,nk->n", vec, t))
+    ud = np.arange(CALIPER_SAMPLES * model.m1) / (CALIPER_SAMPLES * model.m1)
+    rel = np.swapaxes(model.evaluate(ud, v)[0], 0, 1) - p[:, None, :]  # (n, m, 3)
+    e1, e2 = _plane_basis(t)
+    dmin, dmax = _calipers(np.stack([np.einsum("nmk,nk->nm", rel, e) for e in (e1, e2)], -1))
+    return TubeProfile(arc_mm=s, v=v, centerline=p, tangent=t, area=area, min_diameter=dmin,
+                       max_diameter=dmax, length_mm=curve.length, spacing_mm=float(spacing_mm),
+                       capped=np.zeros(len(s), dtype=bool), crossed=np.zeros(len(s), dtype=bool),
+                       projected=True)
 
 
 def tube_profile(model: CylinderModel, spacing_mm: float = PROFILE_SPACING_MM) -> TubeProfile:
@@ -209,35 +742,29 @@ def tube_profile(model: CylinderModel, spacing_mm: float = PROFILE_SPACING_MM) -
     -------
     TubeProfile
         Samples at ``0, spacing_mm, 2 spacing_mm, ...`` from the ``v = 0`` end and at its
-        ``v = 1`` end.
+        ``v = 1`` end, less the dropped ones.
     """
     if model.kind != "cylinder":
         raise ValueError(f"a profile needs a cylinder snake, got a {model.kind}")
     if not spacing_mm > 0:
         raise ValueError(f"the profile's spacing must be > 0, got {spacing_mm}")
-    knots, table = _arc_table(model)
-    length = float(table[-1])
-    s = np.arange(int(np.floor(length / spacing_mm + 1e-9)) + 1) * spacing_mm
-    if length - s[-1] > 1e-9 * max(length, 1.0):
-        s = np.append(s, length)
-    v = _parameters_at(model, s)
-    centre, dc = ring_centroids(model, v)
-    tangent = dc / np.maximum(np.linalg.norm(dc, axis=1, keepdims=True), 1e-300)
-    # Area: Green's formula in the normal plane, Gauss-Legendre around.
-    u, wu = gauss_legendre_grid(model.m1, AREA_ORDER)
-    sig, sig_u, _ = model.evaluate(u, v)  # (nu, n, 3)
-    vec = 0.5 * np.einsum("u,unk->nk", wu, np.cross(sig - centre[None], sig_u))
-    area = np.abs(np.einsum("nk,nk->n", vec, tangent))
-    # Calipers: the ring densely sampled, projected on the normal plane.
-    ud = np.arange(CALIPER_SAMPLES * model.m1) / (CALIPER_SAMPLES * model.m1)
-    dense, _, _ = model.evaluate(ud, v)  # (m, n, 3)
-    e1, e2 = _plane_basis(tangent)
-    dmin = np.empty(len(v))
-    dmax = np.empty(len(v))
-    for j in range(0, len(v), 64):  # in blocks: the support values of 64 rings at a time
-        rel = dense[:, j:j + 64] - centre[None, j:j + 64]  # (m, b, 3)
-        plane = np.stack([np.einsum("mbk,bk->bm", rel, e[j:j + 64]) for e in (e1, e2)], -1)
-        dmin[j:j + 64], dmax[j:j + 64] = _calipers(plane)
-    return TubeProfile(arc_mm=s, v=v, centerline=centre, tangent=tangent, area=area,
-                       min_diameter=dmin, max_diameter=dmax, length_mm=length,
-                       spacing_mm=float(spacing_mm))
+    surf = _Surface(model)
+    curve = _centerline(surf, spacing_mm)
+    s = _samples(curve.length, spacing_mm)
+    p, t, v = curve.at(s)
+    sec = _sections(surf, p, t, v, calipers=True)
+    ok = sec.status != _DROPPED
+    # The two end samples lie on the caps: a cap not normal to the centerline cuts their section
+    # through its middle (about half of it, and a jump with the least tilt), so they are
+    # dropped rather than reported.
+    ends_ok = ok.copy()
+    ends_ok[[0, -1]] &= sec.status[[0, -1]] != _CAPPED
+    if ends_ok.any():  # (a tube shorter than a sample step keeps them: nothing else to show)
+        ok = ends_ok
+    if not ok.any():
+        return _projected_rings(model, curve, s, p, t, v, spacing_mm)
+    return TubeProfile(arc_mm=s[ok], v=v[ok], centerline=p[ok], tangent=t[ok], area=sec.area[ok],
+                       min_diameter=sec.min_diameter[ok], max_diameter=sec.max_diameter[ok],
+                       length_mm=curve.length, spacing_mm=float(spacing_mm),
+                       capped=sec.status[ok] == _CAPPED, crossed=sec.crossed[ok],
+                       dropped_mm=s[~ok])

@@ -178,6 +178,10 @@ def profile_panel(ax, profile) -> None:
         ax.plot(s, d, color="tomato", linewidth=0.6)
     ax.plot(s, profile.equivalent_diameter, color="red", linewidth=1.2,
             label="equivalent 2 sqrt(A/pi)")
+    capped = np.asarray(profile.capped, dtype=bool)
+    if capped.any():  # sections an end cap closes (a tube leaving through an oblique face)
+        ax.plot(s[capped], profile.equivalent_diameter[capped], "o", markersize=2.5,
+                markerfacecolor="none", markeredgecolor="darkred", label="closed by an end cap")
     ax.set_xlabel("arc length along the centerline (mm)", fontsize=8)
     ax.set_ylabel("diameter (mm)", fontsize=8)
     top = float(np.max(profile.max_diameter)) if len(s) else 1.0

@@ -69,6 +69,7 @@ def test_profile_error_against_the_truth(bench, tmp_path):
     res = bench.profile_error(bench.read_profile(path), ph.params)
     assert res["equivalent_max_rel_error"] == pytest.approx(0.04, abs=1e-4)
     assert res["max_max_rel_error"] == pytest.approx(0.04, abs=1e-4)
+    assert res["equivalent_max_rel_error_away_from_ends"] == pytest.approx(0.04, abs=1e-4)
     assert bench.profile_error(bench.read_profile(tmp_path / "none.csv"), ph.params) == {
         "status": "no profile.csv"}
 

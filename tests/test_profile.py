@@ -37,17 +37,65 @@ def test_elliptic_cylinder():
     np.testing.assert_allclose(p.max_diameter, 2 * a, rtol=1e-6)
 
 
+def _capped_disk(k):
+    """Area of the unit disk's part ``x <= k`` (``|k| <= 1``)."""
+    k = np.clip(k, -1.0, 1.0)
+    return np.pi - np.arccos(k) + k * np.sqrt(1.0 - k * k)
+
+
 def test_oblique_cylinder_is_measured_across_its_axis():
     # Circular rings in z planes, axis tilted: the cut normal to the axis is an ellipse of
-    # semi-axes r and r cos(tilt).
+    # semi-axes r and r cos(tilt); within r sin(tilt) of an end the cap z = 0 (z = 40) cuts it
+    # along a chord parallel to its long axis.
     tilt_x, length, r = 10.0, 40.0, 3.0
     shear = np.array([[r, 0, tilt_x], [0, r, 0], [0, 0, length]])
     p = tube_profile(CylinderModel.unit(8, 4).transformed(shear))
     cos = length / np.hypot(tilt_x, length)
     assert p.length_mm == pytest.approx(np.hypot(tilt_x, length), rel=1e-12)
-    np.testing.assert_allclose(p.area, np.pi * r * r * cos, rtol=1e-12)
-    np.testing.assert_allclose(p.min_diameter, 2 * r * cos, rtol=1e-6)
-    np.testing.assert_allclose(p.max_diameter, 2 * r, rtol=1e-6)
+    # The samples on the caps themselves are dropped (cut through their middle), the two next
+    # to them are capped: 1 mm and 0.23 mm from the ends, within r sin(tilt) = 0.73 mm.
+    np.testing.assert_allclose(p.dropped_mm, [0.0, p.length_mm])
+    np.testing.assert_allclose(p.arc_mm, np.arange(1.0, 42.0))
+    assert p.capped.tolist() == [False] * 40 + [True]
+    to_end = np.minimum(p.arc_mm, p.length_mm - p.arc_mm)
+    k = to_end / (r * np.sin(np.arctan2(tilt_x, length)))
+    np.testing.assert_allclose(p.area, r * r * cos * _capped_disk(k), rtol=1e-12)
+    full = ~p.capped
+    np.testing.assert_allclose(p.area[full], np.pi * r * r * cos, rtol=1e-12)
+    np.testing.assert_allclose(p.min_diameter[full], 2 * r * cos, rtol=1e-6)
+    np.testing.assert_allclose(p.max_diameter[full], 2 * r, rtol=1e-6)
+    # The capped section keeps its whole width along the chord; across, the chord cuts it.
+    assert p.max_diameter[-1] == pytest.approx(2 * r, rel=1e-3)
+    assert p.min_diameter[-1] == pytest.approx(r * cos * (1 + k[-1]), rel=1e-3)
+    np.testing.assert_allclose(p.centerline, p.arc_mm[:, None] * np.array([tilt_x, 0, length])
+                               / np.hypot(tilt_x, length), atol=1e-9)
+
+
+def test_straight_tube_leaving_through_oblique_faces():
+    # A circular cylinder along z whose end rings lie in the planes z = z_end + x tan(a) (a tube
+    # leaving the volume through two oblique faces): c[k, l] = (r cos, r sin, h_l + a_l r cos),
+    # a_l = tan(a) at the end rings and 0 inside, so every ring is on the cylinder and the ends
+    # are planar. Its sections are disks of radius r, cut by the faces within r tan(a) of the
+    # ends: what a truth clipped to the volume has there. (Projecting each ring on the plane
+    # normal to the ring centroids' tangent gave the whole disk at every row.)
+    m1, m2, r, length, tan = 8, 8, 4.0, 40.0, 1.0
+    k = np.arange(m1)[:, None]
+    l = np.arange(-1, m2 + 2)[None, :]
+    th = 2 * np.pi * k / m1
+    tilt = np.where((l <= 0) | (l >= m2), tan, 0.0)
+    z = length * l / m2 + tilt * r * np.cos(th)
+    grid = np.stack(np.broadcast_arrays(r * np.cos(th), r * np.sin(th), z), -1)
+    p = tube_profile(CylinderModel(m1, m2, grid.reshape(-1, 3)))
+    assert p.length_mm == pytest.approx(length, rel=1e-12)  # the faces meet the axis there
+    np.testing.assert_allclose(p.centerline[:, :2], 0.0, atol=1e-9)
+    np.testing.assert_allclose(p.tangent, np.broadcast_to([0, 0, 1.0], p.tangent.shape),
+                               atol=1e-9)
+    # Below the plane z = x tan(a) at the v = 0 end, above z = L + x tan(a) at the other.
+    kk = np.where(p.arc_mm < length / 2, p.arc_mm, length - p.arc_mm) / (r * tan)
+    np.testing.assert_allclose(p.area, r * r * _capped_disk(kk), rtol=1e-10)
+    assert p.capped.sum() == 6 and np.all(p.capped == (kk < 1.0))  # 1, 2, 3 mm from each end
+    np.testing.assert_allclose(p.equivalent_diameter[~p.capped], 2 * r, rtol=1e-12)
+    np.testing.assert_allclose(p.min_diameter[~p.capped], 2 * r, rtol=1e-7)
 
 
 def test_tapered_cylinder():
@@ -74,7 +122,31 @@ def test_curved_tube_keeps_its_diameter_and_length():
     p = tube_profile(CylinderModel.from_centerline(line, r, m2=16))
     assert p.length_mm == pytest.approx(np.pi * arc_r, rel=2e-3)
     np.testing.assert_allclose(np.linalg.norm(p.centerline, axis=1), arc_r, rtol=2e-3)
-    np.testing.assert_allclose(p.equivalent_diameter, 2 * r, rtol=1e-2)
+    np.testing.assert_allclose(p.equivalent_diameter, 2 * r, rtol=2e-3)
+
+
+def test_bent_tube_with_tilted_uneven_rings():
+    # A half torus (centre radius 30, tube radius 3) whose control rings tilt more and more
+    # along it (toroidal angle + gamma_l cos(theta)) and whose points bunch on one side (theta
+    # + 0.5 sin(theta)): the surface is the torus (to the spline's 2e-3), the rings are not its
+    # sections and their mean points are 0.9 mm inside its centre circle. The sections' centerline
+    # stays on that circle and their diameter is the tube's.
+    m1, m2, big, r = 12, 24, 30.0, 3.0
+    k = np.arange(m1)[:, None]
+    l = np.arange(-1, m2 + 2)[None, :]
+    th = 2 * np.pi * k / m1
+    th = th + 0.5 * np.sin(th)
+    phi = np.pi * l / m2 + 0.1 * l / 16 * np.cos(th)
+    grid = np.stack(np.broadcast_arrays((big + r * np.cos(th)) * np.cos(phi),
+                                        (big + r * np.cos(th)) * np.sin(phi), r * np.sin(th)), -1)
+    p = tube_profile(CylinderModel(m1, m2, grid.reshape(-1, 3)))
+    inside = (p.arc_mm > 2 * r) & (p.arc_mm < p.length_mm - 2 * r)  # away from the tilted ends
+    assert inside.sum() > 80 and not p.capped[inside].any()
+    np.testing.assert_allclose(np.linalg.norm(p.centerline[inside, :2], axis=1), big, rtol=1e-3)
+    np.testing.assert_allclose(p.centerline[inside, 2], 0.0, atol=1e-9)
+    np.testing.assert_allclose(p.equivalent_diameter[inside], 2 * r, rtol=3e-3)
+    np.testing.assert_allclose(p.min_diameter[inside], 2 * r, rtol=2e-2)
+    np.testing.assert_allclose(p.max_diameter[inside], 2 * r, rtol=2e-2)
 
 
 def test_ring_centroids_are_the_rings_means():
@@ -94,7 +166,39 @@ def test_compact_record_and_refusals():
     d = p.to_dict()
     assert d["columns"] == list(PROFILE_COLUMNS) and len(d["rows"]) == 5  # 0, 1, 2, 3, 3.5
     assert d["rows"][-1][0] == 3.5 and d["rows"][0][5] == 2.0
+    assert d["capped_rows"] == d["crossed_rows"] == d["dropped_arc_mm"] == []
     with pytest.raises(ValueError, match="cylinder"):
         tube_profile(SphereModel.unit())
     with pytest.raises(ValueError, match="spacing"):
         tube_profile(CylinderModel.unit(), spacing_mm=0.0)
+
+
+def test_qc_panel_marks_the_capped_rows():
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from segsnake.qc import profile_panel
+
+    shear = np.array([[3.0, 0, 10.0], [0, 3.0, 0], [0, 0, 40.0]])
+    p = tube_profile(CylinderModel.unit(8, 4).transformed(shear))
+    fig, ax = plt.subplots()
+    profile_panel(ax, p)
+    marks = [ln for ln in ax.get_lines() if ln.get_label() == "closed by an end cap"]
+    assert len(marks) == 1
+    np.testing.assert_allclose(marks[0].get_xdata(), p.arc_mm[p.capped])
+    plt.close(fig)
+
+
+def test_a_tube_too_short_for_any_section_falls_back_to_projected_rings():
+    # Length 1.28 mm, radius 3, caps tilted by 51 degrees: every plane normal to the axis
+    # crosses both caps. The rings projected on those planes are the oblique cylinder's
+    # perpendicular ellipse (area pi r^2 cos), so there is still a profile, flagged.
+    tilt_x, length, r = 1.0, 0.8, 3.0
+    shear = np.array([[r, 0, tilt_x], [0, r, 0], [0, 0, length]])
+    p = tube_profile(CylinderModel.unit(8, 4).transformed(shear))
+    cos = length / np.hypot(tilt_x, length)
+    assert p.projected and p.to_dict()["projected_rings"] is True
+    np.testing.assert_allclose(p.arc_mm, [0.0, 1.0, np.hypot(tilt_x, length)])
+    np.testing.assert_allclose(p.area, np.pi * r * r * cos, rtol=1e-12)
+    np.testing.assert_allclose(p.min_diameter, 2 * r * cos, rtol=1e-6)
