@@ -155,11 +155,12 @@ def main(argv: Sequence[str] | None = None, *,
     """
     if exit_process is None:
         exit_process = argv is None
-    if exit_process:  # the segsnake program: its freed volumes go back to the system
-        return_freed_memory()
     argv = list(sys.argv[1:] if argv is None else argv)
-    # Known before parsing, so that a command line argparse refuses is reported in JSON too.
-    state: dict[str, Any] = {"command": None, "json": "--json" in argv, "debug": False}
+    # Known before parsing, so that a command line argparse refuses is reported in JSON too, and
+    # an interrupt during the start-up's imports names its command.
+    first = next((a for a in argv if not a.startswith("-")), None)
+    state: dict[str, Any] = {"command": first if first in COMMANDS else None,
+                             "json": "--json" in argv, "debug": False}
     if _reported.locked():  # an earlier main() in this process (tests) reported its interrupt
         _reported.release()
     try:
@@ -179,6 +180,8 @@ def _main(argv: list[str], parser: argparse.ArgumentParser | None, state: dict[s
     # run like Ctrl-C, the cleanup of partial outputs runs instead of leaving a staging directory.
     cancel.install(grace=cancel.GRACE_S if exit_process else None,
                    on_exit=lambda: _report_interrupted(state))
+    if exit_process:  # the segsnake program: its freed volumes go back to the system
+        return_freed_memory()
     try:
         if parser is None:
             parser = build_parser()

@@ -166,6 +166,21 @@ def test_unexpected_error_is_one_line_without_traceback(capsys):
         main(["--debug", "broken"], parser=parser)
 
 
+def test_an_interrupt_during_start_up_names_the_command(capsys):
+    """A Ctrl-C before the command line is parsed (the start-up's imports; here a parser that is
+    interrupted) still says which command stopped: ``segsnake batch: interrupted``, 130."""
+
+    class Interrupted(argparse.ArgumentParser):
+        def parse_args(self, *args, **kwargs):
+            raise KeyboardInterrupt
+
+    for argv, where in ((["batch", "runs.yaml"], "segsnake batch"),
+                        (["--debug", "segment", "x.nii"], "segsnake segment"),
+                        (["no-such-command"], "segsnake")):
+        rc = main(argv, parser=Interrupted(prog="segsnake"))
+        assert rc == 130 and capsys.readouterr().err == f"{where}: interrupted\n", argv
+
+
 # ---------------------------------------------------------------------------------- demo
 def test_demo_leaves_no_temporary_directory_and_honours_json(tmp_path):
     env = {**os.environ, "TMPDIR": str(tmp_path)}
