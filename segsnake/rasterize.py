@@ -26,8 +26,9 @@ from segsnake.surfaces import SplineSurface
 
 __all__ = ["rasterize", "mesh_for_mask", "scan_convert"]
 
-#: Triangles per batch of :func:`scan_convert` (bounds its temporaries to a few tens of MB).
-BATCH_TRIANGLES = 1 << 17
+#: Candidate (triangle, column) pairs per batch of :func:`scan_convert`: its temporaries stay
+#: within about 100 MB whatever the triangles' sizes (a tube's end caps are large fans).
+BATCH_CANDIDATES = 1 << 20
 
 
 def mesh_for_mask(model: SplineSurface, spacing: Sequence[float]) -> tuple[NDArray, NDArray]:
@@ -82,8 +83,13 @@ def scan_convert(points: NDArray, tris: NDArray, shape: Sequence[int]) -> NDArra
     flat = flips.reshape(-1)
     points = np.asarray(points, dtype=np.float64)
     tris = np.asarray(tris, dtype=np.int64)
-    for start in range(0, len(tris), BATCH_TRIANGLES):
-        i, j, k = _crossings(points, tris[start:start + BATCH_TRIANGLES], nx, ny, nz)
+    lo, hi = _columns(points, tris, nx, ny)
+    total = np.cumsum(np.prod(np.maximum(hi - lo + 1, 0), axis=1))
+    cuts = np.searchsorted(total, np.arange(BATCH_CANDIDATES, total[-1] if len(total) else 0,
+                                            BATCH_CANDIDATES))
+    bounds = np.unique(np.concatenate([[0], cuts, [len(tris)]]).astype(np.int64))
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        i, j, k = _crossings(points, tris[start:stop], nx, ny, nz)
         np.bitwise_xor.at(flat, (i * ny + j) * (nz + 1) + k, np.uint8(1))
     np.bitwise_xor.accumulate(flips, axis=2, out=flips)
     return flips[:, :, :nz].astype(bool)
@@ -98,10 +104,7 @@ def _crossings(points: NDArray, tris: NDArray, nx: int, ny: int,
     area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
     keep = area != 0
     a, b, c, area = a[keep], b[keep], c[keep], area[keep]
-    # the integer (i, j) within each projection's bounding box, clipped to the grid
-    lo = np.maximum(np.ceil(np.minimum(np.minimum(a, b), c)[:, :2]), 0).astype(np.int64)
-    hi = np.minimum(np.floor(np.maximum(np.maximum(a, b), c)[:, :2]),
-                    [nx - 1, ny - 1]).astype(np.int64)
+    lo, hi = _columns(points, tris[keep], nx, ny)
     size = np.maximum(hi - lo + 1, 0)
     count = size[:, 0] * size[:, 1]
     t = np.repeat(np.arange(len(a)), count)
@@ -120,6 +123,17 @@ def _crossings(points: NDArray, tris: NDArray, nx: int, ny: int,
     z = (wa * a[hit, 2] + wb * b[hit, 2] + wc * c[hit, 2]) / (wa + wb + wc)
     k = np.clip(np.ceil(z), 0, nz).astype(np.int64)
     return i[hit], j[hit], k
+
+
+def _columns(points: NDArray, tris: NDArray, nx: int, ny: int) -> tuple[NDArray, NDArray]:
+    """The first and last integer ``(i, j)`` of each triangle's projection's bounding box,
+    clipped to the grid (``lo > hi`` where it misses the grid)."""
+    x, y = (points[:, axis][tris] for axis in (0, 1))
+    lo = np.stack([np.maximum(np.ceil(x.min(axis=1)), 0),
+                   np.maximum(np.ceil(y.min(axis=1)), 0)], axis=1).astype(np.int64)
+    hi = np.stack([np.minimum(np.floor(x.max(axis=1)), nx - 1),
+                   np.minimum(np.floor(y.max(axis=1)), ny - 1)], axis=1).astype(np.int64)
+    return lo, hi
 
 
 def _edge(p: NDArray, q: NDArray, x: NDArray, sign: NDArray) -> tuple[NDArray, NDArray]:
