@@ -14,11 +14,13 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from segsnake.parallel import pieces, thread_map, threads
+from segsnake.parallel import slabs, thread_map, threads
 
 __all__ = ["distance_to", "distance_within", "ITK_MIN_VOXELS"]
 
 ITK_MIN_VOXELS = 1 << 21
+#: Voxels per piece of :func:`distance_within`'s passes (1 MiB of float32: small temporaries).
+PIECE_VOXELS = 1 << 18
 
 
 def distance_to(mask: NDArray[np.bool_], spacing: Sequence[float]) -> NDArray[np.float32]:
@@ -78,21 +80,12 @@ def distance_within(mask: NDArray[np.bool_], spacing: Sequence[float],
         # keep the shifted sums' temporaries small)
         thread_map(lambda sl, axis=axis, s=s, reach=reach: _envelope_1d(d2[sl], tmp[sl], axis, s,
                                                                        reach),
-                   _pieces_across(d2.shape, axis))
+                   slabs(d2.shape, axis, max_voxels=PIECE_VOXELS))
         d2, tmp = tmp, d2
     del tmp
     limit = np.float32(max_mm) * np.float32(max_mm)
     d2[d2 > limit] = np.inf
     return np.sqrt(d2, out=d2)
-
-
-def _pieces_across(shape: Sequence[int], axis: int, size: int = 1 << 18) -> list[tuple[slice, ...]]:
-    """Index tuples cutting ``shape`` across its longest axis other than ``axis`` into pieces of
-    about ``size`` voxels (at least one plane each)."""
-    cut = max((a for a in range(len(shape)) if a != axis), key=lambda a: shape[a])
-    plane = int(np.prod(shape)) // max(shape[cut], 1)
-    return [tuple(sl if a == cut else slice(None) for a in range(len(shape)))
-            for sl in pieces(shape[cut], max(size // max(plane, 1), 1))]
 
 
 def _envelope_1d(src: NDArray, out: NDArray, axis: int, step: float, reach: int) -> None:

@@ -91,8 +91,8 @@ def _deriv(a: np.ndarray, axis: int, h: float, order: int) -> np.ndarray:
 
 def _cumint_x(g: np.ndarray, h: float, out: np.ndarray | None = None) -> np.ndarray:
     """4th-order cumulative integral along axis 0 from the first plane (float64, or into ``out``
-    if given, float64 or float32, which may be ``g`` itself), in threads over slabs cut across another axis, each
-    written straight into the result."""
+    if given, float64 or float32, which may be ``g`` itself), in threads over slabs cut across
+    another axis, each written straight into the result."""
     if out is None:
         out = np.empty_like(g, dtype=np.float64)
     thread_map(lambda sl: _cumint_x_slab(g[sl], h, out[sl]), slabs(g.shape, 0))

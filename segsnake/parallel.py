@@ -132,15 +132,22 @@ def pieces(n: int, max_size: int) -> list[slice]:
     return [slice(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:])]
 
 
-def slabs(shape: Sequence[int], axis: int) -> list[tuple[slice, ...]]:
+def slabs(shape: Sequence[int], axis: int,
+          max_voxels: int | None = None) -> list[tuple[slice, ...]]:
     """Index tuples cutting an array of ``shape`` into :func:`threads` slabs, across the longest
-    axis other than ``axis`` (so a 1D pass along ``axis`` runs on each slab independently)."""
+    axis other than ``axis`` (so a 1D pass along ``axis`` runs on each slab independently);
+    with ``max_voxels``, into more slabs where needed so that none holds more voxels than that
+    (at least one plane each)."""
     others = [a for a in range(len(shape)) if a != axis]
     if not others:
         return [tuple(slice(None) for _ in shape)]
     cut = max(others, key=lambda a: shape[a])
+    planes = -(-shape[cut] // threads())
+    if max_voxels is not None:
+        plane = int(np.prod(shape)) // max(shape[cut], 1)
+        planes = min(planes, max(max_voxels // max(plane, 1), 1))
     return [tuple(sl if a == cut else slice(None) for a in range(len(shape)))
-            for sl in pieces(shape[cut], -(-shape[cut] // threads()))]
+            for sl in pieces(shape[cut], planes)]
 
 
 def _along_axes(out: np.ndarray, axes: Sequence[int],

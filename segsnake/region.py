@@ -217,13 +217,12 @@ def local_outside_mean(image_s: NDArray, shell: NDArray, spacing: Sequence[float
     return total
 
 
-def two_class_density(image_s: NDArray, model: IntensityModel, outside_mean: NDArray,
-                      out: NDArray | None = None) -> NDArray:
+def two_class_density(image_s: NDArray, model: IntensityModel, outside_mean: NDArray) -> NDArray:
     """``tanh(llr / 2)`` of the inside's Gaussian against a local outside one of the same spread
     centred on ``outside_mean``: ``llr = ((I - mu)^2 - (I - mu_out)^2) / (2 sigma^2)``, zero at
     the midpoint between the two means, which on a step blurred symmetrically is the step
-    (float32; into ``out`` if given)."""
-    out = _output(image_s, out)
+    (float32)."""
+    out = _output(image_s, None)
     for i in range(image_s.shape[0]):  # plane by plane: no float64 copy of the volume
         out[i] = _two_class_plane(image_s[i], outside_mean[i], model)
     return out
