@@ -173,61 +173,40 @@ def segment_cmd(segsnake: str, rec: dict, init: str, out: Path, flags: list[str]
 
 
 def read_profile(path: Path) -> dict[str, np.ndarray] | None:
-    """``profile.csv``'s columns by meaning: arc length, centreline x/y/z, area, diameters.
+    """``profile.csv``'s columns (:data:`segsnake.profile.PROFILE_COLUMNS`, world mm) by meaning:
+    arc length, centreline x/y/z, area, diameters; None without the file or rows."""
+    from segsnake.profile import PROFILE_COLUMNS
 
-    Header names are matched loosely (``arc``; ``x``/``y``/``z`` with any ``centerline_``,
-    ``_mm`` or ``_world`` decoration; ``area``; ``equivalent``; ``min``/``max`` + ``diam``).
-    """
     if not path.is_file():
         return None
-    with open(path, newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not r[0].startswith("#")]
-    if len(rows) < 2:
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if len(data) == 0:
         return None
-    head = [h.strip().lower() for h in rows[0]]
-    data = np.array([[float(v) for v in r] for r in rows[1:]])
 
-    def col(pred) -> np.ndarray | None:
-        hits = [i for i, h in enumerate(head) if pred(h)]
-        return data[:, hits[0]] if hits else None
+    def col(name: str) -> np.ndarray:
+        return data[:, PROFILE_COLUMNS.index(name)]
 
-    def bare(h: str) -> str:
-        for junk in ("centerline_", "centreline_", "center_", "world_", "_world", "_mm", "mm"):
-            h = h.replace(junk, "")
-        return h.strip("_ ")
-
-    out = {"arc": col(lambda h: "arc" in h), "area": col(lambda h: "area" in h),
-           "equivalent": col(lambda h: "equiv" in h),
-           "min": col(lambda h: "min" in h and "diam" in h),
-           "max": col(lambda h: "max" in h and "diam" in h)}
-    xyz = [col(lambda h, a=a: bare(h) == a) for a in "xyz"]
-    out["xyz"] = np.stack(xyz, axis=1) if all(c is not None for c in xyz) else None
-    out["voxels"] = any("vox" in h for h in head)
-    return out
+    return {"arc": col("arc_length_mm"), "area": col("area_mm2"),
+            "equivalent": col("equivalent_diameter_mm"), "min": col("min_diameter_mm"),
+            "max": col("max_diameter_mm"),
+            "xyz": np.stack([col(f"{a}_mm") for a in "xyz"], axis=1)}
 
 
 def profile_error(prof: dict | None, params: dict) -> dict:
     """Largest relative error of the equivalent (and min/max) diameter against the truth's.
 
     Each profile row is placed on the true centreline by its centreline point (world mm through
-    the phantom's affine, or voxel indices when the header says so); rows farther from the true
-    centreline than the true radius count as off it.
+    the phantom's affine); rows farther from the true centreline than the true radius count as
+    off it.
     """
-    from segsnake.phantoms import tube_truth, truth_profile
+    from segsnake.phantoms import _affine, tube_truth, truth_profile
 
     if prof is None:
         return {"status": "no profile.csv"}
-    if prof["xyz"] is None or prof["equivalent"] is None:
-        return {"status": "profile.csv without centreline points or equivalent diameter"}
     sp = np.asarray(params["spacing"], dtype=float)
-    if prof["voxels"]:
-        mm = prof["xyz"] * sp
-    else:
-        from segsnake.phantoms import _affine
-
-        aff = _affine(params["shape"], sp, params["options"].get("grid_rotation"))
-        vox = (np.linalg.inv(aff) @ np.c_[prof["xyz"], np.ones(len(prof["xyz"]))].T).T[:, :3]
-        mm = vox * sp
+    aff = _affine(params["shape"], sp, params["options"].get("grid_rotation"))
+    vox = (np.linalg.inv(aff) @ np.c_[prof["xyz"], np.ones(len(prof["xyz"]))].T).T[:, :3]
+    mm = vox * sp
     sw = tube_truth(params)
     cl = params["geometry"]["centerline"]
     s, dist = sw.nearest(mm)
@@ -240,7 +219,7 @@ def profile_error(prof: dict | None, params: dict) -> dict:
     if not on.any():
         res["status"] = "no row on the true centreline"
         return res
-    truth = truth_profile(params, s[on])
+    truth = truth_profile(params, s[on], tube=sw)
     # Away from the ends: rows more than one true diameter from either end of the true
     # centreline (where an end's position or its cap's tilt, not the calibre, decides the error).
     length = float(cl["length_mm"])
@@ -248,11 +227,10 @@ def profile_error(prof: dict | None, params: dict) -> dict:
     res["rows_away_from_ends"] = int(inner.sum())
     for key, name in (("equivalent", "equivalent_diameter"), ("min", "min_diameter"),
                       ("max", "max_diameter")):
-        if prof[key] is not None:
-            err = np.abs(prof[key][on] - truth[name]) / truth[name]
-            res[f"{key}_max_rel_error"] = float(err.max())
-            if inner.any():
-                res[f"{key}_max_rel_error_away_from_ends"] = float(err[inner].max())
+        err = np.abs(prof[key][on] - truth[name]) / truth[name]
+        res[f"{key}_max_rel_error"] = float(err.max())
+        if inner.any():
+            res[f"{key}_max_rel_error_away_from_ends"] = float(err[inner].max())
     res["coverage"] = float((s[on].max() - s[on].min()) / float(cl["length_mm"]))
     res["status"] = "ok"
     return res

@@ -1292,7 +1292,7 @@ def tube_truth(params: dict) -> SweptTube:
 
 
 def truth_profile(params: dict, arc_length: Sequence[float] | None = None,
-                  step: float = 1.0) -> dict[str, NDArray]:
+                  step: float = 1.0, tube: SweptTube | None = None) -> dict[str, NDArray]:
     """The truth's sections along its centreline, measured (see :meth:`SweptTube.profile`).
 
     Measured, not analytic: rays in the plane normal to the true centreline, boundary crossings
@@ -1311,6 +1311,8 @@ def truth_profile(params: dict, arc_length: Sequence[float] | None = None,
         the face a tube leaves through).
     step : float
         Spacing of the default positions, mm.
+    tube : SweptTube, optional
+        ``tube_truth(params)``, when the caller has built it already.
 
     Returns
     -------
@@ -1318,7 +1320,7 @@ def truth_profile(params: dict, arc_length: Sequence[float] | None = None,
         ``arc_length``, ``center`` (mm of scaled index space), ``center_world`` (world mm),
         ``area`` (mm^2), ``equivalent_diameter``, ``min_diameter``, ``max_diameter`` (mm).
     """
-    sw = tube_truth(params)
+    sw = tube if tube is not None else tube_truth(params)
     cl = params["geometry"]["centerline"]
     if arc_length is None:
         arc_length = np.arange(0.5 * step, float(cl["length_mm"]), step)

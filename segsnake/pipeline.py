@@ -512,6 +512,13 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 model = interpolate_tube(model, m2)
     report("two classes", 0.5)
 
+    def inside_and_shell(surface, win):
+        # The voxels inside the surface, and the shell between shell_gap_mm and shell_mm
+        # outside it where the outside is read, on the window's grid.
+        inside = rasterize(win.model_in(surface), win.shape, sp)
+        shell = distance_within(inside, sp, p.shell_mm)
+        return inside, (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
+
     last = p.two_class_rounds - 1
     final, record = None, None  # (the last stage's run.last, and its restart record)
     # (a restart: only the last round, its outside read around the surface the saved one read)
@@ -524,11 +531,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         if restart is not None and k == last:
             start = model_from_dict(restart["round_start"])
         sub = image_s[win.slices]
-        inside = rasterize(win.model_in(start), win.shape, sp)
+        inside, shell = inside_and_shell(start, win)
         if not inside.any():
             raise SegmentationError("the surface encloses no voxel centre")
-        shell = distance_within(inside, sp, p.shell_mm)
-        shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
         if not shell.any():
             raise SegmentationError("the surface filled the whole image: no outside to compare")
         contrast, polarity = rg.step_contrast(sub, inside, shell)
@@ -546,9 +551,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             # The two classes with the outside read around the round's starting surface (in a
             # grown window, read again there).
             if w_win != win:
-                inside_w = rasterize(w_win.model_in(start), w_win.shape, sp)
-                shell = distance_within(inside_w, sp, p.shell_mm)
-                shell = (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
+                shell = inside_and_shell(start, w_win)[1]
             sub = image_s[w_win.slices]
             mu_out = rg.local_outside_mean(sub, shell, sp, p.outside_smooth_mm)
             rg.two_class_blend(sub, intensity, mu_out, out)
@@ -993,10 +996,10 @@ def tube_ends(model: CylinderModel, shape: Sequence[int], spacing: Sequence[floa
             for c in ring_centroids(model, np.array([0.0, 1.0]))[0]]
 
 
-def _volume_per_area(model: SplineSurface) -> float:
+def _volume_per_area(model: SplineSurface, radius: float) -> float:
     """Volume per mm^2 of boundary of the model's kind at its radius r: r / 3 for a sphere,
     r / 2 for a tube (the scale of a volume energy relative to a surface one)."""
-    return _model_radius(model) / (2 if model.kind == "cylinder" else 3)
+    return radius / (2 if model.kind == "cylinder" else 3)
 
 
 def longest_intervals(model: SplineSurface, params: NDArray | None = None) -> NDArray:
@@ -1254,6 +1257,9 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
     """The stage's energy; its first term is the image's :class:`FluxTerm`."""
     flux = FluxTerm(model, lookup, weight=weight, order=order, closed=region)
     terms = [flux]
+    # (measured once: the terms' weights all scale with them)
+    area, r = abs(model.area(order=4)), _model_radius(model)
+    per_area = _volume_per_area(model, r)
     if REGULARIZATION > 0:
         # Internal energy: bending of the deviation from the nearest ellipsoid (elliptic
         # cylinder), scaled so that a deviation of the size of the surface's radius costs about
@@ -1262,18 +1268,16 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
         # the stage's starting energy: a refinement that starts off the ridge has almost none,
         # and each round re-weighted the bending by a different amount (measured: T1 brain
         # n7_rf40, Dice 0.906 -> 0.960 with the area).
-        area = abs(model.area(order=4))
-        r = _model_radius(model)
         # A volume density's energy on its boundary is about the volume: r / 3 per mm^2 of a
         # sphere, r / 2 of a tube.
-        scale = _volume_per_area(model) if region else 1.0
+        scale = per_area if region else 1.0
         terms.append(BendingRegularizer(model, weight=REGULARIZATION * scale * area / r ** 2,
                                         tube=region))
     if model.kind == "cylinder" and region:
         # A ring may narrow but not close: the barrier costs a ring at a twentieth of its
         # start's area about as much as the volume of its slab of the tube.
         rings = RingBarrier.per_interval * model.m2 + 1  # the rows it measures
-        slab = _volume_per_area(model) * abs(model.area(order=4)) / rings
+        slab = per_area * area / rings
         terms.append(RingBarrier(model, model.params, weight=slab))
     if model.kind == "cylinder" and not region:
         # The open ends feel no flux: without tension they drift past the ends of the
@@ -1283,11 +1287,11 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
         # area, also presses on the whole lateral surface with CYLINDER_TENSION / radius, which
         # held tubes whose capture ended 4-5 mm inside the wall out of the refinement's reach:
         # measured when this was introduced: a tube along (1, 1, 0), Jaccard 0.32 -> 0.969.)
-        perimeter = 2 * math.pi * _model_radius(model)
+        perimeter = 2 * math.pi * r
         terms.append(AxialTension(model, weight=CYLINDER_TENSION * perimeter))
     if extra_energy is not None:
         # The prior's weight is relative to the image energy, scaled like the bending.
-        terms.append(_Scaled(extra_energy(model), _volume_per_area(model)) if region
+        terms.append(_Scaled(extra_energy(model), per_area) if region
                      else extra_energy(model))
     return SumEnergy(terms)
 

@@ -71,7 +71,7 @@ from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 
 from segsnake.basis import keys
-from segsnake.surfaces import CylinderModel, gauss_legendre_grid
+from segsnake.surfaces import CylinderModel, gauss_legendre_grid, orthonormal_pair
 
 __all__ = ["PROFILE_SPACING_MM", "PROFILE_COLUMNS", "TubeProfile", "ring_centroids",
            "tube_profile"]
@@ -113,9 +113,6 @@ class TubeProfile:
     ----------
     arc_mm : ndarray (n,)
         Arc length from the ``v = 0`` end (mm).
-    v : ndarray (n,)
-        The spline parameter along the tube the sample's section is centred on (the nearest
-        cut to it is the section).
     centerline : ndarray (n, 3)
         The sections' centerline (the model's coordinates, mm).
     tangent : ndarray (n, 3)
@@ -140,7 +137,6 @@ class TubeProfile:
     """
 
     arc_mm: NDArray
-    v: NDArray
     centerline: NDArray
     tangent: NDArray
     area: NDArray
@@ -234,14 +230,6 @@ def _parameters_at(speed: Speed, knots: NDArray, table: NDArray, s: NDArray) -> 
 
 def _unit(x: NDArray) -> NDArray:
     return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-300)
-
-
-def _plane_basis(t: NDArray) -> tuple[NDArray, NDArray]:
-    """Two unit vectors spanning the planes normal to the unit tangents ``t (n, 3)``."""
-    helper = np.where(np.abs(t[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    e1 = np.cross(helper, t)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    return e1, np.cross(t, e1)
 
 
 def _refined_extreme(values: NDArray, axis: int, largest: bool) -> NDArray:
@@ -500,7 +488,7 @@ def _measure(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, uu: NDArray, w
     """Green's integrals ``(A, M_a, M_b)`` of the cuts along ``uu`` (weights ``ww``), closed by
     the cap's chord when ``cap = (end, u_a, u_b)``; whether each cut is whole (every ``u``
     crosses, no jump) and whether its plane cuts the tube elsewhere too."""
-    e1, e2 = _plane_basis(t)
+    e1, e2 = orthonormal_pair(t)
     v, s, s_u, s_v, many = _cut(surf, uu, p, t, v0)
     tt = t[:, None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -549,7 +537,7 @@ def _sections(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, calipers: boo
     status[(status != _DROPPED) & ~(np.abs(a_signed) > 0)] = _DROPPED
     ok = status != _DROPPED
     area = np.where(ok, np.abs(a_signed), np.nan)
-    e1, e2 = _plane_basis(t)
+    e1, e2 = orthonormal_pair(t)
     centroid = np.full((n, 3), np.nan)
     centroid[ok] = (p[ok] + (moments[ok, 1] / a_signed[ok])[:, None] * e1[ok]
                     + (moments[ok, 2] / a_signed[ok])[:, None] * e2[ok])
@@ -720,9 +708,9 @@ def _projected_rings(model: CylinderModel, curve: _Curve, s: NDArray, p: NDArray
     area = np.abs(np.einsum("nk,nk->n", vec, t))
     ud = np.arange(CALIPER_SAMPLES * model.m1) / (CALIPER_SAMPLES * model.m1)
     rel = np.swapaxes(model.evaluate(ud, v)[0], 0, 1) - p[:, None, :]  # (n, m, 3)
-    e1, e2 = _plane_basis(t)
+    e1, e2 = orthonormal_pair(t)
     dmin, dmax = _calipers(np.stack([np.einsum("nmk,nk->nm", rel, e) for e in (e1, e2)], -1))
-    return TubeProfile(arc_mm=s, v=v, centerline=p, tangent=t, area=area, min_diameter=dmin,
+    return TubeProfile(arc_mm=s, centerline=p, tangent=t, area=area, min_diameter=dmin,
                        max_diameter=dmax, length_mm=curve.length, spacing_mm=float(spacing_mm),
                        capped=np.zeros(len(s), dtype=bool), crossed=np.zeros(len(s), dtype=bool),
                        projected=True)
@@ -763,7 +751,7 @@ def tube_profile(model: CylinderModel, spacing_mm: float = PROFILE_SPACING_MM) -
         ok = ends_ok
     if not ok.any():
         return _projected_rings(model, curve, s, p, t, v, spacing_mm)
-    return TubeProfile(arc_mm=s[ok], v=v[ok], centerline=p[ok], tangent=t[ok], area=sec.area[ok],
+    return TubeProfile(arc_mm=s[ok], centerline=p[ok], tangent=t[ok], area=sec.area[ok],
                        min_diameter=sec.min_diameter[ok], max_diameter=sec.max_diameter[ok],
                        length_mm=curve.length, spacing_mm=float(spacing_mm),
                        capped=sec.status[ok] == _CAPPED, crossed=sec.crossed[ok],

@@ -43,6 +43,7 @@ def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> 
     elliptic cylinder and small for a tube that bends or turns its axes at a steady rate (an
     arch), large for a kink.
     """
+    tube = tube and model.kind == "cylinder"  # (a sphere has no rings: the same matrix)
     key = (model.kind, model.m1, model.m2, order, tube)
     if key in _CACHE:
         return _CACHE[key]
@@ -58,20 +59,11 @@ def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> 
         return np.einsum("uk,vl,kl...->uv...", Bu[ku], Bv[kv],
                          A.reshape(model.m1, model.m2 + 3, -1)).reshape(len(u) * len(v), -1)
 
-    S0 = sampling(0, 0)
-    ref = _reference(model)
-    ref_samples = S0 @ ref.params  # (Nq, 3)
-    X = np.column_stack([ref_samples, np.ones(len(ref_samples))])  # affine fit basis
     sw = np.sqrt(W)
-    # Weighted least-squares fit of the samples by X: coef = pinv(sw X) (sw S0 p).
-    fit = np.linalg.lstsq(sw[:, None] * X, sw[:, None] * S0, rcond=None)[0]  # (4, P)
-    # Parameters of the fitted affine image: points get the translation, vectors do not.
-    basis_params = np.column_stack([ref.params, (~ref.is_vector).astype(float)])  # (P, 4)
-    R = np.eye(A.shape[1]) - basis_params @ fit  # residual parameters, (P, P)
     hu, hv = 1.0 / model.m1, 1.0 / model.m2
     D = np.vstack([hu * hu * sampling(2, 0), np.sqrt(2.0) * hu * hv * sampling(1, 1),
                    hv * hv * sampling(0, 2)]) * np.tile(sw, 3)[:, None]
-    if model.kind == "cylinder" and tube:
+    if tube:
         # Each control ring's part beyond its best ellipse bends like the surface above; the
         # ellipses themselves (centre and axes, row by row) only pay for third differences
         # along the tube (see :func:`_ellipse_projector`).
@@ -80,6 +72,15 @@ def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> 
         T = np.kron(np.eye(model.m1), np.diff(np.eye(model.m2 + 3), n=3, axis=0)) @ ellipses
         K = DR.T @ DR + T.T @ T / (model.m1 * model.m2)
     else:
+        S0 = sampling(0, 0)
+        ref = _reference(model)
+        ref_samples = S0 @ ref.params  # (Nq, 3)
+        X = np.column_stack([ref_samples, np.ones(len(ref_samples))])  # affine fit basis
+        # Weighted least-squares fit of the samples by X: coef = pinv(sw X) (sw S0 p).
+        fit = np.linalg.lstsq(sw[:, None] * X, sw[:, None] * S0, rcond=None)[0]  # (4, P)
+        # Parameters of the fitted affine image: points get the translation, vectors do not.
+        basis_params = np.column_stack([ref.params, (~ref.is_vector).astype(float)])  # (P, 4)
+        R = np.eye(A.shape[1]) - basis_params @ fit  # residual parameters, (P, P)
         DR = D @ R
         K = DR.T @ DR
     K = 0.5 * (K + K.T)

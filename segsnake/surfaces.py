@@ -615,7 +615,7 @@ class CylinderModel(SplineSurface):
         if length <= 0:
             raise ValueError("cylinder axis end points coincide")
         e3 = axis / length
-        e1, e2 = _orthonormal_pair(e3)
+        e1, e2 = orthonormal_pair(e3)
         A = np.column_stack([radius * e1, radius * e2, axis])
         return cls.unit(m1, m2).transformed(A, start)
 
@@ -694,7 +694,7 @@ class CylinderModel(SplineSurface):
                               [max(rad_ends[1], 0.5 * rad[-1])]])
         centers = np.vstack([centers[0] - h * tangents[0], centers, centers[-1] + h * tangents[-1]])
         tangents = np.vstack([tangents[:1], tangents, tangents[-1:]])
-        f1 = [_orthonormal_pair(tangents[0])[0]]
+        f1 = [orthonormal_pair(tangents[0])[0]]
         for j in range(1, len(centers)):  # double reflection (rotation-minimizing frames)
             v1 = centers[j] - centers[j - 1]
             c1 = v1 @ v1
@@ -810,11 +810,13 @@ def axial_rings(length: float, mean_radius: float) -> int:
     return int(min(max(rings, AXIAL_RINGS_MIN), AXIAL_RINGS_MAX))
 
 
-def _orthonormal_pair(e3: NDArray) -> tuple[NDArray, NDArray]:
-    """Two unit vectors completing ``e3`` to a right-handed orthonormal frame (e1, e2, e3)."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(e3[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+def orthonormal_pair(e3: NDArray) -> tuple[NDArray, NDArray]:
+    """Two unit vectors completing the unit ``e3`` (``(3,)`` or ``(n, 3)``) to right-handed
+    orthonormal frames (e1, e2, e3)."""
+    e3 = np.asarray(e3, dtype=np.float64)
+    helper = np.where(np.abs(e3[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
     e1 = np.cross(helper, e3)
-    e1 /= np.linalg.norm(e1)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
     return e1, np.cross(e3, e1)
 
 
