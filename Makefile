@@ -8,8 +8,9 @@ $(PY):
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
-# Reinstalled when the build inputs change, or when the compiled kernel is missing.
-$(STAMP): pyproject.toml setup.py segsnake/_sampling.c $(if $(wildcard segsnake/_sampling*.so),,FORCE) | $(PY)
+# Reinstalled when the build inputs change, or when a compiled kernel is missing.
+$(STAMP): pyproject.toml setup.py segsnake/_sampling.c segsnake/_winding.c \
+		$(if $(and $(wildcard segsnake/_sampling*.so),$(wildcard segsnake/_winding*.so)),,FORCE) | $(PY)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 

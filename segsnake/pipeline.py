@@ -47,6 +47,7 @@ from segsnake.errors import ConfigError, SegmentationError
 from segsnake.frames import flux_frame
 from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
 from segsnake.parallel import gaussian_filter, pieces, thread_map
+from segsnake.rasterize import crossing_volume
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, axial_rings, \
     model_from_dict
@@ -82,6 +83,13 @@ QUADRATURE_RTOL = 2e-3
 #: catches gross under-resolution (measured: 0.2-1 % while a blob's refinement runs).
 QUADRATURE_CHECK_EVERY = 25
 QUADRATURE_RTOL_RUNNING = 2e-2
+#: The share of a region stage's volume that its surface may wrap other than once (crossing
+#: itself or turned inside out; :class:`_Admissible`): the volume integral is then wrong by at
+#: most that share of the density's scale, the accuracy the converged quadrature is held to
+#: (``QUADRATURE_RTOL``). Zero would refuse every step of a tube whose planar end cap grazes
+#: its wall over one ray (measured on a perturbed lung2 trachea click: stuck at Dice 0.68,
+#: 0.80 without the test).
+CROSSING_RTOL = QUADRATURE_RTOL
 #: The region energy's density beyond the field of view (voxels of padding, and the density
 #: there: +1, what the region densities give far outside an object, whose inside is negative).
 #: Space the image does not show is not the object: a tube that leaves the volume ends on its
@@ -1191,7 +1199,15 @@ class _Admissible:
     start's (its lobes legitimately turn normals by more than 90 degrees: measured on the
     Colin27 brain, the start's check stopped the growth at a tenth of the volume), and a step
     that shrinks the volume below :data:`MIN_VOLUME_FRACTION` of the start's is refused (a
-    surface that collapses through itself turns no normal by 90 degrees in one step).
+    surface that collapses through itself turns no normal by 90 degrees in one step). Such a
+    stage also refuses a step whose surface crosses itself or turns inside out by more than
+    :data:`CROSSING_RTOL` of its volume (:func:`segsnake.rasterize.crossing_volume`; unless its
+    start did, as a hand-edited snake may): a volume integral counts a region the surface wraps
+    twice twice and one it wraps inside out negatively, so a density that is positive outside
+    the object rewards a surface that passes one part through another, and step by step no
+    normal need turn by 90 degrees (measured on the Colin27 thalamus before the test: a round
+    shrank the surface from 68 000 to 7 000 mm^3 while its mask kept 34 000 voxels, half of it
+    wrapped inside out, and the next went on to 3 mm^3: Dice 0.06; with it 0.26).
 
     A tube's rings are checked too (any stage): each ring's signed area vector
     ``1/2 integral sigma x sigma_u du`` must point along the tube (its component along the
@@ -1208,7 +1224,9 @@ class _Admissible:
         self.start = start
         self.max_interval = max_interval
         self.follow = follow
-        self.min_volume = MIN_VOLUME_FRACTION * abs(start.volume(order=4)) if follow else None
+        volume = abs(start.volume(order=4))
+        self.min_volume = MIN_VOLUME_FRACTION * volume if follow else None
+        self.crossings = follow and crossing_volume(start) <= CROSSING_RTOL * volume
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
         # Two intervals at each pole (one when M2 = 4: two would leave no row to check).
         skip = per_interval * min(2, (start.m2 - 1) // 2) if start.kind == "sphere" else 0
@@ -1233,12 +1251,15 @@ class _Admissible:
     def __call__(self, params: NDArray) -> bool:
         if np.any(longest_intervals(self.start, params) > self.max_interval):
             return False
-        if self.min_volume is not None and \
-                self.start.with_params(params).volume(order=4) < self.min_volume:
+        surface = self.start.with_params(params)
+        volume = surface.volume(order=4) if self.follow else None
+        if self.min_volume is not None and volume < self.min_volume:
             return False
         if self.rings is not None and np.any(self.rings.areas(params)[0] < self.min_area):
             return False
-        return bool(np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0))
+        if not np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0):
+            return False
+        return not self.crossings or crossing_volume(surface) <= CROSSING_RTOL * abs(volume)
 
     def following(self, callback: Callable[[int, float, NDArray], bool]):
         """The optimizer's callback: with ``follow``, each accepted iterate becomes the

@@ -323,15 +323,11 @@ class SplineSurface:
         """
         i = np.arange(nu)
         ip = (i + 1) % nu
-        faces = []
-        for j in range(rows - 1):
-            a = offset + j * nu + i
-            b = offset + j * nu + ip
-            c = offset + (j + 1) * nu + ip
-            d = offset + (j + 1) * nu + i
-            faces.append(np.stack([a, d, b], axis=1))
-            faces.append(np.stack([b, d, c], axis=1))
-        return np.concatenate(faces) if faces else np.zeros((0, 3), dtype=int)
+        row = offset + nu * np.arange(max(rows - 1, 0))[:, None]
+        a, b, c, d = row + i, row + ip, row + nu + ip, row + nu + i
+        # per row: its nu triangles (a, d, b), then its nu triangles (b, d, c)
+        return np.stack([np.stack([a, d, b], axis=-1), np.stack([b, d, c], axis=-1)],
+                        axis=1).reshape(-1, 3)
 
     @staticmethod
     def _cap_faces(nu: int, first_apex: int, first_row: int, last_apex: int,

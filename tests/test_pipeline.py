@@ -99,6 +99,29 @@ def test_a_tube_ring_may_not_tilt_over_or_flatten():
     assert _Admissible(tube, np.array([1e9, 1e9]), follow=True)(with_row(3, 0.5))
 
 
+def test_a_region_stage_refuses_a_surface_that_crosses_itself():
+    # A hairpin tube (legs 16 mm apart, radius 3 mm) whose legs' control points are moved
+    # towards each other: no normal turns over, no ring shrinks; only the test for self-crossing
+    # refuses the legs pushed into each other, and only in a region stage (follow=True), whose
+    # volume integral it would corrupt.
+    from segsnake.pipeline import _Admissible
+    from segsnake.surfaces import CylinderModel
+
+    axis = [(5, 10, 5), (5, 10, 35), (13, 10, 45), (21, 10, 35), (21, 10, 5)]
+    start = CylinderModel.from_centerline(axis, 3.0, m1=8, m2=12)
+    points = start.params.reshape(-1, 3)
+
+    def legs_moved(d):  # each leg's control points d mm towards the other (the bend stays)
+        moved = points.copy()
+        moved[:, 0] += d * np.clip((13 - points[:, 0]) / 4, -1, 1) * (points[:, 2] < 36)
+        return moved.reshape(start.params.shape)
+
+    region = _Admissible(start, np.array([1e9, 1e9]), follow=True)
+    assert region(legs_moved(4))  # narrowed in places, apart
+    assert not region(legs_moved(7))  # the legs overlap
+    assert _Admissible(start, np.array([1e9, 1e9]))(legs_moved(7))  # an edge stage's check
+
+
 def test_dark_object_on_bright_background_is_found_with_auto_polarity():
     ph = make_phantom("ball", seed=4, noise=0.2, foreground=20.0, background=100.0)
     res = _segment(ph, 9)

@@ -4,7 +4,7 @@ counted once, even where it meets an edge or a vertex of the mesh exactly."""
 import numpy as np
 import pytest
 
-from segsnake.rasterize import rasterize, scan_convert
+from segsnake.rasterize import crossing_volume, rasterize, scan_convert, windings
 from segsnake.surfaces import CylinderModel, SphereModel
 
 
@@ -68,3 +68,79 @@ def test_an_octahedron_with_its_vertices_on_rays():
     mask = scan_convert(points, tris, (13, 13, 13))
     l1 = np.abs(_grid((13, 13, 13)) - c).sum(axis=-1)
     assert mask[l1 < 4].all() and not mask[l1 > 4].any()
+
+
+def _ellipsoid_mesh(center, radii):
+    return SphereModel.ellipsoid(np.asarray(center, float), np.asarray(radii, float),
+                                 None, 9, 9).triangles(36, 36)
+
+
+def test_windings_tell_embedded_from_inverted_and_doubled_meshes():
+    points, tris = _ellipsoid_mesh((10, 11, 12), (6, 5, 4))
+    assert windings(points, tris) == (0, 1, 0.0)
+    lo, hi, inside_out = windings(points / 0.25, tris[:, ::-1])  # rays 0.25 mm apart
+    assert (lo, hi) == (-1, 0)
+    # the volume wound -1 times is the mesh's (by the divergence theorem)
+    a, b, c = (points[tris[:, k]] for k in range(3))
+    volume = np.einsum("fd,fd->", a, np.cross(b, c)) / 6
+    assert inside_out * 0.25 ** 3 == pytest.approx(volume, rel=0.002)
+    # two overlapping balls in one mesh wrap their overlap twice: a lens of
+    # pi (4 r + d) (2 r - d)^2 / 12 for radius r = 5 and centres d = 4 apart; disjoint, none
+    ball, tris2 = _ellipsoid_mesh((10, 11, 12), (5, 5, 5))
+    other, _ = _ellipsoid_mesh((14, 11, 12), (5, 5, 5))
+    twice = np.vstack([tris2, tris2 + len(ball)])
+    lo, hi, lens = windings(np.vstack([ball, other]) / 0.25, twice)
+    assert (lo, hi) == (0, 2)
+    assert lens * 0.25 ** 3 == pytest.approx(np.pi * 24 * 36 / 12, rel=0.02)
+    far, _ = _ellipsoid_mesh((40, 11, 12), (5, 5, 5))
+    assert windings(np.vstack([ball, far]), twice) == (0, 1, 0.0)
+    # a shell: a small ball inside, turned inward, bounds a cavity
+    inner, tris3 = _ellipsoid_mesh((10, 11, 12), (2, 2, 2))
+    shell = np.vstack([points, inner])
+    assert windings(shell, np.vstack([tris, tris3[:, ::-1] + len(points)]))[:2] == (0, 1)
+    assert windings(shell, np.vstack([tris, tris3 + len(points)]))[:2] == (0, 2)
+
+
+def test_windings_count_rays_through_edges_and_vertices_once():
+    # every vertex and edge of the box's faces and of the octahedron lies on rays: a crossing
+    # counted twice or missed leaves a ray at winding -1 or 2
+    points, tris = _cube((2.0, 2.0, 2.5), (7.0, 7.0, 7.5))
+    assert windings(points, tris) == (0, 1, 0.0)
+    c = np.array([6.0, 6.0, 6.0])
+    octa = c + 4 * np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1],
+                             [0, 0, -1]], float)
+    faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+                      [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    assert windings(octa, faces) == (0, 1, 0.0)
+    assert windings(octa, faces[:, ::-1])[:2] == (-1, 0)
+
+
+def _squashed_sphere(top_scale):
+    """A sphere's spline (radius 10 mm) whose upper half is scaled along z by ``top_scale`` (a
+    number, or a function of x on the unit sphere)."""
+    m1 = m2 = 9
+    u = np.arange(m1) / m1
+    v = np.arange(1, m2) / m2
+    theta, phi = np.meshgrid(2 * np.pi * u, np.pi * v, indexing="ij")
+    p = np.stack([np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi)], -1)
+    scale = top_scale(p[..., 0]) if callable(top_scale) else top_scale
+    p[..., 2] = np.where(p[..., 2] > 0, scale * p[..., 2], p[..., 2])
+    north = top_scale(0.0) if callable(top_scale) else top_scale
+    return SphereModel.from_points(10 * p + 20, (20, 20, 20 + 10 * north), (20, 20, 10))
+
+
+def test_crossing_volume_of_a_dented_surface_and_of_one_pushed_through_itself():
+    assert crossing_volume(_squashed_sphere(1.0)) == 0.0
+    assert crossing_volume(_squashed_sphere(0.3)) == 0.0  # flattened, still bounding a region
+    # its top pushed down past its bottom: the lens between them is inside out, all of it
+    inverted = _squashed_sphere(-1.5)
+    assert crossing_volume(inverted) == pytest.approx(-inverted.volume(order=8), rel=0.03)
+    # its top pushed down through its bottom on one side only: the two cross
+    assert crossing_volume(_squashed_sphere(lambda x: -0.4 - x)) > 10.0
+    # a tube, capped; one bent back on itself so that its legs overlap
+    assert crossing_volume(CylinderModel.from_axis((10, 10, 5), (10, 10, 40), 5.0)) == 0.0
+    # (legs' axes 6 mm apart, radius 3 mm: they touch, and overlap where they join the bend)
+    hairpin = np.array([(10, 10, 5), (10, 10, 35), (13, 10, 42), (16, 10, 35), (16, 10, 5)])
+    apart = hairpin + np.array([-8, -8, 0, 8, 8])[:, None] * [1, 0, 0]
+    assert crossing_volume(CylinderModel.from_centerline(apart, 3.0, m2=12)) == 0.0
+    assert crossing_volume(CylinderModel.from_centerline(hairpin, 3.0, m2=12)) > 20.0

@@ -77,8 +77,9 @@ def fresh_copy(dest: Path) -> Path:
         if src.is_file():
             (dest / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, dest / rel)  # mtimes kept: make compares them with the stamp
-    # The compiled kernel is what the install builds (ignored by git): make checks it is there.
-    for so in (ROOT / "segsnake").glob("_sampling*.so"):
+    # The compiled kernels are what the install builds (ignored by git): make checks they are
+    # there.
+    for so in (ROOT / "segsnake").glob("_*.so"):
         shutil.copy2(so, dest / "segsnake" / so.name)
     venv = Path(sys.prefix)
     if venv == Path(sys.base_prefix) or not (venv / "bin" / "segsnake").is_file():
