@@ -26,9 +26,11 @@ from segsnake.surfaces import SplineSurface
 
 __all__ = ["rasterize", "mesh_for_mask", "scan_convert", "windings", "crossing_volume"]
 
-#: Candidate (triangle, column) pairs per batch of :func:`scan_convert`: its temporaries stay
-#: within about 100 MB whatever the triangles' sizes (a tube's end caps are large fans).
-BATCH_CANDIDATES = 1 << 20
+#: Triangles, and candidate (triangle, column) pairs, per batch of :func:`scan_convert`: its
+#: temporaries stay within a few tens of MB whatever the triangles' sizes (a brain's mask mesh
+#: has 660 000 triangles, most of them crossing no column; a tube's end caps are large fans).
+BATCH_TRIANGLES = 1 << 17
+BATCH_CANDIDATES = 1 << 18
 
 
 def mesh_for_mask(model: SplineSurface, spacing: Sequence[float]) -> tuple[NDArray, NDArray]:
@@ -108,7 +110,8 @@ def scan_convert(points: NDArray, tris: NDArray, shape: Sequence[int]) -> NDArra
     total = np.cumsum(np.prod(np.maximum(hi - lo + 1, 0), axis=1))
     cuts = np.searchsorted(total, np.arange(BATCH_CANDIDATES, total[-1] if len(total) else 0,
                                             BATCH_CANDIDATES))
-    bounds = np.unique(np.concatenate([[0], cuts, [len(tris)]]).astype(np.int64))
+    bounds = np.unique(np.concatenate([np.arange(0, len(tris), BATCH_TRIANGLES), cuts,
+                                       [len(tris)]]).astype(np.int64))
     for start, stop in zip(bounds[:-1], bounds[1:]):
         i, j, z = _crossings(points, tris[start:stop], nx, ny)
         k = np.clip(np.ceil(z), 0, nz).astype(np.int64)
