@@ -85,11 +85,12 @@ QUADRATURE_CHECK_EVERY = 25
 QUADRATURE_RTOL_RUNNING = 2e-2
 #: The share of a region stage's volume that its surface may wrap other than once (crossing
 #: itself or turned inside out; :class:`_Admissible`): the volume integral is then wrong by at
-#: most that share of the density's scale, the accuracy the converged quadrature is held to
-#: (``QUADRATURE_RTOL``). Zero would refuse every step of a tube whose planar end cap grazes
-#: its wall over one ray (measured on a perturbed lung2 trachea click: stuck at Dice 0.68,
-#: 0.80 without the test).
-CROSSING_RTOL = QUADRATURE_RTOL
+#: most that share of the density's scale, the accuracy a running stage's energy is trusted to
+#: (``QUADRATURE_RTOL_RUNNING``). A tube's planar end caps graze its wall where an end ring is
+#: not flat: measured, a perfect-edge lung2 trachea (16 x 8) keeps 0.2 % of its volume wrapped
+#: twice there and was stuck at Dice 0.39 with 2e-3 (0.914 with 1e-2 and 2e-2), a perturbed
+#: trachea click at 0.68 with 0 (0.80 from 5e-4 up). Sweep in docs/benchmarks.md.
+CROSSING_RTOL = QUADRATURE_RTOL_RUNNING
 #: The region energy's density beyond the field of view (voxels of padding, and the density
 #: there: +1, what the region densities give far outside an object, whose inside is negative).
 #: Space the image does not show is not the object: a tube that leaves the volume ends on its

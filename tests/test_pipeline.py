@@ -118,8 +118,8 @@ def test_a_region_stage_refuses_a_surface_that_crosses_itself():
 
     region = _Admissible(start, np.array([1e9, 1e9]), follow=True)
     assert region(legs_moved(4))  # narrowed in places, apart
-    assert not region(legs_moved(7))  # the legs overlap
-    assert _Admissible(start, np.array([1e9, 1e9]))(legs_moved(7))  # an edge stage's check
+    assert not region(legs_moved(8))  # the legs pushed into each other
+    assert _Admissible(start, np.array([1e9, 1e9]))(legs_moved(8))  # an edge stage's check
 
 
 def test_dark_object_on_bright_background_is_found_with_auto_polarity():
