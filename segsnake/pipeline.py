@@ -1225,9 +1225,9 @@ class _Admissible:
         self.start = start
         self.max_interval = max_interval
         self.follow = follow
-        volume = abs(start.volume(order=4))
+        volume = abs(start.volume(order=4)) if follow else 0.0
         self.min_volume = MIN_VOLUME_FRACTION * volume if follow else None
-        self.crossings = follow and crossing_volume(start) <= CROSSING_RTOL * volume
+        self.test_crossings = follow and crossing_volume(start) <= CROSSING_RTOL * volume
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
         # Two intervals at each pole (one when M2 = 4: two would leave no row to check).
         skip = per_interval * min(2, (start.m2 - 1) // 2) if start.kind == "sphere" else 0
@@ -1252,7 +1252,7 @@ class _Admissible:
     def __call__(self, params: NDArray) -> bool:
         if np.any(longest_intervals(self.start, params) > self.max_interval):
             return False
-        surface = self.start.with_params(params)
+        surface = self.start.with_params(params) if self.follow else None
         volume = surface.volume(order=4) if self.follow else None
         if self.min_volume is not None and volume < self.min_volume:
             return False
@@ -1260,7 +1260,7 @@ class _Admissible:
             return False
         if not np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0):
             return False
-        return not self.crossings or crossing_volume(surface) <= CROSSING_RTOL * abs(volume)
+        return not self.test_crossings or crossing_volume(surface) <= CROSSING_RTOL * abs(volume)
 
     def following(self, callback: Callable[[int, float, NDArray], bool]):
         """The optimizer's callback: with ``follow``, each accepted iterate becomes the

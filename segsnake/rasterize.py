@@ -113,8 +113,7 @@ def scan_convert(points: NDArray, tris: NDArray, shape: Sequence[int]) -> NDArra
     bounds = np.unique(np.concatenate([np.arange(0, len(tris), BATCH_TRIANGLES), cuts,
                                        [len(tris)]]).astype(np.int64))
     for start, stop in zip(bounds[:-1], bounds[1:]):
-        i, j, z = _crossings(points, tris[start:stop], nx, ny)
-        k = np.clip(np.ceil(z), 0, nz).astype(np.int64)
+        i, j, k = _crossings(points, tris[start:stop], nx, ny, nz)
         np.bitwise_xor.at(flat, (i * ny + j) * (nz + 1) + k, np.uint8(1))
     np.bitwise_xor.accumulate(flips, axis=2, out=flips)
     return flips[:, :, :nz].astype(bool)
@@ -157,9 +156,10 @@ def _ray_triangles(points: NDArray, tris: NDArray) -> NDArray:
     return np.ascontiguousarray((points - origin)[np.asarray(tris, dtype=np.int64)])
 
 
-def _crossings(points: NDArray, tris: NDArray, nx: int,
-               ny: int) -> tuple[NDArray, NDArray, NDArray]:
-    """The rays ``(i, j)`` each triangle crosses, and the height ``z`` of each crossing."""
+def _crossings(points: NDArray, tris: NDArray, nx: int, ny: int,
+               nz: int) -> tuple[NDArray, NDArray, NDArray]:
+    """The rays ``(i, j)`` each triangle crosses, and the first voxel centre ``k`` at or above
+    each crossing (clipped to ``[0, nz]``)."""
     a, b, c = (points[tris[:, n]] for n in range(3))
     # twice the signed area of the projection on (x, y); a flat projection crosses no ray
     area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
@@ -182,7 +182,8 @@ def _crossings(points: NDArray, tris: NDArray, nx: int,
     hit = inside_a & inside_b & inside_c
     wa, wb, wc = wa[hit], wb[hit], wc[hit]
     z = (wa * a[hit, 2] + wb * b[hit, 2] + wc * c[hit, 2]) / (wa + wb + wc)
-    return i[hit], j[hit], z
+    k = np.clip(np.ceil(z), 0, nz).astype(np.int64)
+    return i[hit], j[hit], k
 
 
 def _columns(points: NDArray, tris: NDArray, nx: int, ny: int) -> tuple[NDArray, NDArray]:

@@ -1,0 +1,93 @@
+"""The sweep behind ``pipeline.CROSSING_RTOL``: how much of its volume a region stage's surface may
+wrap other than once before a step is refused (docs/design.md, "No self-crossing").
+
+    .venv/bin/python benchmarks/crossing_sweep.py [--values 0 5e-4 2e-3 1e-2 2e-2 5e-2 inf]
+
+Each value is set on the module for the run (a sweep of a constant, not an option users have;
+``inf`` is the pipeline before the test existed) and the cases below are segmented in this
+process with the default options: the cases of the real-data benchmark (``make
+bench-real-data``) whose results it moved, the lung2 trachea from the benchmark's third perturbed
+click (the tube whose planar end cap grazes its wall) and its perfect-edge ceiling at 16 x 8, and
+the 1 mm aortic arch phantom of ``bench_tubes.py`` from its 5-point centreline. Prints the Dice of
+each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_real import clicks  # noqa: E402
+from bench_tubes import cases as tube_cases  # noqa: E402
+from segsnake import pipeline  # noqa: E402
+from segsnake.config import SegmentConfig  # noqa: E402
+from segsnake.errors import SegmentationError  # noqa: E402
+from segsnake.io import load_volume  # noqa: E402
+from segsnake.metrics import dice  # noqa: E402
+from segsnake.phantoms import make_phantom  # noqa: E402
+
+CASES = Path.home() / ".cache" / "segsnake" / "real" / "cases"
+
+
+def runs(cases: dict) -> list[tuple[str, str, dict, bool]]:
+    """(label, case name, initialization, perfect edges) of each run."""
+    trachea = dict(cases["lung2-trachea"], truth=str(CASES / cases["lung2-trachea"]["truth"]))
+    return [("thalamus R, click", "colin27-thalamus-r", cases["colin27-thalamus-r"]["init"], False),
+            ("hippocampus R, click", "colin27-hippocampus-r",
+             cases["colin27-hippocampus-r"]["init"], False),
+            ("tumour, click", "lung2-tumour", cases["lung2-tumour"]["init"], False),
+            ("trachea, perturbed click 3", "lung2-trachea", clicks(trachea, 3)[3][1], False),
+            ("trachea, perfect edges 16x8", "lung2-trachea",
+             {**cases["lung2-trachea"]["init"], "m1": 16, "m2": 8}, True)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--values", nargs="+", type=float,
+                    default=[0.0, 5e-4, 2e-3, 1e-2, 2e-2, 5e-2, float("inf")])
+    opts = ap.parse_args()
+    cases = {c["name"]: c for c in json.loads((CASES / "cases.json").read_text())}
+    plan = runs(cases)
+    volumes: dict[str, tuple] = {}
+    arch = next(c for c in tube_cases() if c["id"] == "arch_1x1x1")
+    ph = make_phantom(arch["kind"], seed=arch["seed"], **arch["options"])
+    click = ph.params["geometry"]["click"]
+    volumes["arch_1x1x1"] = (ph.image, ph.truth.astype(bool), ph.spacing)
+    plan.append(("arch 1 mm, centreline", "arch_1x1x1",
+                 {"shape": "cylinder", "centerline": [[*p, r] for p, r in
+                                                      zip(click["points_voxels"],
+                                                          click["radius_voxels"])]}, False))
+    print("| CROSSING_RTOL | " + " | ".join(label for label, *_ in plan) + " |")
+    print("|---" * (len(plan) + 1) + "|")
+    default = pipeline.CROSSING_RTOL
+    try:
+        for value in opts.values:
+            pipeline.CROSSING_RTOL = value
+            row = []
+            for _, name, init, perfect in plan:
+                if name not in volumes:
+                    case = cases[name]
+                    truth = load_volume(str(CASES / case["truth"]))
+                    volumes[name] = (load_volume(str(CASES / case["image"])).data,
+                                     truth.data > 0, truth.spacing)
+                image, truth, spacing = volumes[name]
+                try:
+                    res = pipeline.segment_volume(truth.astype(np.float32) if perfect else image,
+                                                  spacing, SegmentConfig.from_mapping(init))
+                    row.append(f"{dice(res.mask, truth):.3f}")
+                except SegmentationError as exc:
+                    row.append(f"fail ({str(exc).split(':')[0]})")
+            print(f"| {value:g} | " + " | ".join(row) + " |", flush=True)
+    finally:
+        pipeline.CROSSING_RTOL = default
+
+
+if __name__ == "__main__":
+    main()
