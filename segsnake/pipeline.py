@@ -1208,7 +1208,7 @@ class _Admissible:
     the object rewards a surface that passes one part through another, and step by step no
     normal need turn by 90 degrees (measured on the Colin27 thalamus before the test: a round
     shrank the surface from 68 000 to 7 000 mm^3 while its mask kept 34 000 voxels, half of it
-    wrapped inside out, and the next went on to 3 mm^3: Dice 0.06; with it 0.26).
+    wrapped inside out, and the next went on to 3 mm^3: Dice 0.06; with the test 0.23).
 
     A tube's rings are checked too (any stage): each ring's signed area vector
     ``1/2 integral sigma x sigma_u du`` must point along the tube (its component along the
