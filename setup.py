@@ -3,4 +3,6 @@
 from setuptools import Extension, setup
 
 setup(ext_modules=[Extension("segsnake._sampling", ["segsnake/_sampling.c"]),
-                   Extension("segsnake._winding", ["segsnake/_winding.c"])])
+                   # (no fused multiply-adds: the scan's ties are decided alike everywhere)
+                   Extension("segsnake._scan", ["segsnake/_scan.c"],
+                             extra_compile_args=["-ffp-contract=off"])])

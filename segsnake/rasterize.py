@@ -12,7 +12,9 @@ Rays that meet an edge or a vertex exactly are counted once: a triangle's projec
 points strictly inside it and those of its edges that satisfy a half-plane rule on the edge's
 direction (the "top-left" rule of GPU rasterizers), with the edge's test computed from its two
 vertices in a fixed order, so the two triangles that share an edge decide the same point the
-same way to the last bit. The cylinder is closed by planar caps through its end rings.
+same way to the last bit. The cylinder is closed by planar caps through its end rings. The same
+scan gives the mesh's winding numbers (:func:`windings`), whether it crosses itself. The loops
+are compiled (``segsnake/_scan.c``).
 """
 
 from __future__ import annotations
@@ -26,11 +28,9 @@ from segsnake.surfaces import SplineSurface
 
 __all__ = ["rasterize", "mesh_for_mask", "scan_convert", "windings", "crossing_volume"]
 
-#: Triangles, and candidate (triangle, column) pairs, per batch of :func:`scan_convert`: its
-#: temporaries stay within a few tens of MB whatever the triangles' sizes (a brain's mask mesh
-#: has 660 000 triangles, most of them crossing no column; a tube's end caps are large fans).
+#: Triangles per batch of :func:`scan_convert`: their vertex coordinates, the compiled scan's
+#: input, take 72 bytes a triangle (9 MB a batch; a brain's mask mesh has 660 000 triangles).
 BATCH_TRIANGLES = 1 << 17
-BATCH_CANDIDATES = 1 << 18
 
 
 def mesh_for_mask(model: SplineSurface, spacing: Sequence[float]) -> tuple[NDArray, NDArray]:
@@ -99,22 +99,17 @@ def scan_convert(points: NDArray, tris: NDArray, shape: Sequence[int]) -> NDArra
     shape : (nx, ny, nz)
         Grid shape.
     """
+    from segsnake._scan import parity
+
     nx, ny, nz = (int(n) for n in shape)
     # flips[i, j, k]: the parity of the crossings of ray (i, j) between centres k - 1 and k
     # (k = nz collects those above the grid); its running XOR along k is the mask.
     flips = np.zeros((nx, ny, nz + 1), dtype=np.uint8)
-    flat = flips.reshape(-1)
     points = np.asarray(points, dtype=np.float64)
     tris = np.asarray(tris, dtype=np.int64)
-    lo, hi = _columns(points, tris, nx, ny)
-    total = np.cumsum(np.prod(np.maximum(hi - lo + 1, 0), axis=1))
-    cuts = np.searchsorted(total, np.arange(BATCH_CANDIDATES, total[-1] if len(total) else 0,
-                                            BATCH_CANDIDATES))
-    bounds = np.unique(np.concatenate([np.arange(0, len(tris), BATCH_TRIANGLES), cuts,
-                                       [len(tris)]]).astype(np.int64))
-    for start, stop in zip(bounds[:-1], bounds[1:]):
-        i, j, k = _crossings(points, tris[start:stop], nx, ny, nz)
-        np.bitwise_xor.at(flat, (i * ny + j) * (nz + 1) + k, np.uint8(1))
+    for start in range(0, len(tris), BATCH_TRIANGLES):
+        parity(np.ascontiguousarray(points[tris[start:start + BATCH_TRIANGLES]]), (nx, ny, nz),
+               flips)
     np.bitwise_xor.accumulate(flips, axis=2, out=flips)
     return flips[:, :, :nz].astype(bool)
 
@@ -141,7 +136,7 @@ def windings(points: NDArray, tris: NDArray) -> tuple[int, int, float]:
         Vertex ids of the triangles, all oriented the same way (outward: ``(0, 1, 0.0)`` when
         embedded; inward: ``(-1, 0, volume)``).
     """
-    from segsnake._winding import windings as kernel
+    from segsnake._scan import windings as kernel
 
     return kernel(_ray_triangles(points, tris))
 
@@ -152,68 +147,4 @@ def _ray_triangles(points: NDArray, tris: NDArray) -> NDArray:
     points = np.asarray(points, dtype=np.float64)
     origin = np.floor(points.min(axis=0)) if len(points) else np.zeros(3)
     origin[2] = 0.0
-    # (the kernel scans the rays as scan_convert does: _crossings, _edge)
     return np.ascontiguousarray((points - origin)[np.asarray(tris, dtype=np.int64)])
-
-
-def _crossings(points: NDArray, tris: NDArray, nx: int, ny: int,
-               nz: int) -> tuple[NDArray, NDArray, NDArray]:
-    """The rays ``(i, j)`` each triangle crosses, and the first voxel centre ``k`` at or above
-    each crossing (clipped to ``[0, nz]``)."""
-    a, b, c = (points[tris[:, n]] for n in range(3))
-    # twice the signed area of the projection on (x, y); a flat projection crosses no ray
-    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    keep = area != 0
-    a, b, c, area = a[keep], b[keep], c[keep], area[keep]
-    lo, hi = _columns(points, tris[keep], nx, ny)
-    size = np.maximum(hi - lo + 1, 0)
-    count = size[:, 0] * size[:, 1]
-    t = np.repeat(np.arange(len(a)), count)
-    local = np.arange(len(t)) - np.repeat(np.cumsum(count) - count, count)
-    i = lo[t, 0] + local // np.maximum(size[t, 1], 1)
-    j = lo[t, 1] + local % np.maximum(size[t, 1], 1)
-    p = np.stack([i, j], axis=1).astype(np.float64)
-    a, b, c, sign = a[t], b[t], c[t], np.sign(area[t])
-    # barycentric weights (times the area): each edge's test value, positive inside for a
-    # counter-clockwise projection (sign > 0)
-    wa, inside_a = _edge(b, c, p, sign)
-    wb, inside_b = _edge(c, a, p, sign)
-    wc, inside_c = _edge(a, b, p, sign)
-    hit = inside_a & inside_b & inside_c
-    wa, wb, wc = wa[hit], wb[hit], wc[hit]
-    z = (wa * a[hit, 2] + wb * b[hit, 2] + wc * c[hit, 2]) / (wa + wb + wc)
-    k = np.clip(np.ceil(z), 0, nz).astype(np.int64)
-    return i[hit], j[hit], k
-
-
-def _columns(points: NDArray, tris: NDArray, nx: int, ny: int) -> tuple[NDArray, NDArray]:
-    """The first and last integer ``(i, j)`` of each triangle's projection's bounding box,
-    clipped to the grid (``lo > hi`` where it misses the grid)."""
-    x, y = (points[:, axis][tris] for axis in (0, 1))
-    lo = np.stack([np.maximum(np.ceil(x.min(axis=1)), 0),
-                   np.maximum(np.ceil(y.min(axis=1)), 0)], axis=1).astype(np.int64)
-    hi = np.stack([np.minimum(np.floor(x.max(axis=1)), nx - 1),
-                   np.minimum(np.floor(y.max(axis=1)), ny - 1)], axis=1).astype(np.int64)
-    return lo, hi
-
-
-def _edge(p: NDArray, q: NDArray, x: NDArray, sign: NDArray) -> tuple[NDArray, NDArray]:
-    """The edge function of ``p -> q`` at ``x`` (``(q - p) x (x - p)``, the z component) and
-    whether ``x`` is on the triangle's side of it, ties by the top-left rule.
-
-    The value is computed from the two vertices in lexicographic order and its sign flipped for
-    the other direction, so it is exactly antisymmetric: the neighbour across the edge gets the
-    same number. A point on the edge belongs to the triangle when the edge, traversed
-    counter-clockwise, points down (or right, when level): of two neighbours that traverse a
-    shared edge in opposite directions exactly one takes it; of a front and a back face folded
-    along it (same direction) both or neither, which the even-odd rule counts as none.
-    """
-    swap = (q[:, 0] < p[:, 0]) | ((q[:, 0] == p[:, 0]) & (q[:, 1] < p[:, 1]))
-    lo = np.where(swap[:, None], q, p)
-    hi = np.where(swap[:, None], p, q)
-    value = (hi[:, 0] - lo[:, 0]) * (x[:, 1] - lo[:, 1]) - (hi[:, 1] - lo[:, 1]) * (x[:, 0] - lo[:, 0])
-    value = np.where(swap, -value, value)
-    s = sign * value
-    dx, dy = sign * (q[:, 0] - p[:, 0]), sign * (q[:, 1] - p[:, 1])
-    takes = (dy < 0) | ((dy == 0) & (dx > 0))
-    return value * sign, (s > 0) | ((s == 0) & takes)

@@ -1,0 +1,312 @@
+/* Scan conversion of closed triangle meshes along the rays at integer (x, y), parallel to z: the
+ * inner loops of segsnake.rasterize (masks by the even-odd rule, and winding numbers).
+ *
+ * Each triangle's projection on (x, y) is scan-converted: a ray belongs to the triangle when it
+ * is strictly inside the projection, or on an edge that the top-left rule gives it, the edge
+ * function computed from the edge's two vertices in lexicographic order (so the two triangles
+ * that share an edge decide a ray on it the same way, to the bit). A crossing is the ray, the
+ * height where it meets the triangle, and the sign of the projection's area (+1:
+ * counter-clockwise, the face's normal along +z, the ray leaves).
+ *
+ * - parity: flips a bit per crossing at the first voxel centre at or above it (the mask is the
+ *   running XOR along z, taken by the caller). The region stages rasterize the surface every
+ *   round, the brain's with 660 000 triangles; numpy's version of this loop took 0.18 s a mask.
+ * - windings: the crossings are bucketed by ray, sorted by height within each ray, and the
+ *   winding number runs along each ray, the crossings at one height taken together. The region
+ *   stages test every trial step's surface with it (~10^3 triangles, a few thousand times a
+ *   run), where numpy spent ~1 ms a test in the overhead of some forty small array operations.
+ *
+ * Plain C on Python buffers (no numpy headers); the GIL is released. The arithmetic is the
+ * order the comments give, without contraction into fused multiply-adds (setup.py builds with
+ * -ffp-contract=off), so every platform decides ties alike.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+typedef struct {
+    Py_ssize_t ray;
+    double z;
+    int up;
+} Crossing;
+
+/* The edge function of p -> q at (x, y), times `sign`, and whether (x, y) is on the triangle's
+ * side of it (ties by the top-left rule); see rasterize._edge. */
+static int edge(const double *p, const double *q, double x, double y, double sign, double *w)
+{
+    int swap = (q[0] < p[0]) || (q[0] == p[0] && q[1] < p[1]);
+    const double *lo = swap ? q : p, *hi = swap ? p : q;
+    double value = (hi[0] - lo[0]) * (y - lo[1]) - (hi[1] - lo[1]) * (x - lo[0]);
+    if (swap)
+        value = -value;
+    double s = sign * value;
+    double dx = sign * (q[0] - p[0]), dy = sign * (q[1] - p[1]);
+    int takes = (dy < 0) || (dy == 0 && dx > 0);
+    *w = s;
+    return (s > 0) || (s == 0 && takes);
+}
+
+typedef int (*visit_fn)(void *ctx, Py_ssize_t i, Py_ssize_t j, double z, int up);
+
+/* Every crossing of the triangles (f, 3 vertices (x, y, z)) with the rays 0 <= i < nx,
+ * 0 <= j < ny, passed to `visit`; stops with its first non-zero return. */
+static int scan(const double *tri, Py_ssize_t f, Py_ssize_t nx, Py_ssize_t ny, visit_fn visit,
+                void *ctx)
+{
+    for (Py_ssize_t t = 0; t < f; t++) {
+        const double *a = tri + 9 * t, *b = a + 3, *c = a + 6;
+        double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+        if (area == 0)
+            continue; /* a projection without area crosses no ray */
+        double sign = area > 0 ? 1.0 : -1.0;
+        double x0 = ceil(fmin(a[0], fmin(b[0], c[0]))), x1 = floor(fmax(a[0], fmax(b[0], c[0])));
+        double y0 = ceil(fmin(a[1], fmin(b[1], c[1]))), y1 = floor(fmax(a[1], fmax(b[1], c[1])));
+        Py_ssize_t i0 = x0 > 0 ? (Py_ssize_t)x0 : 0, j0 = y0 > 0 ? (Py_ssize_t)y0 : 0;
+        Py_ssize_t i1 = x1 < (double)(nx - 1) ? (Py_ssize_t)x1 : nx - 1;
+        Py_ssize_t j1 = y1 < (double)(ny - 1) ? (Py_ssize_t)y1 : ny - 1;
+        for (Py_ssize_t i = i0; i <= i1; i++)
+            for (Py_ssize_t j = j0; j <= j1; j++) {
+                double wa, wb, wc;
+                if (!edge(b, c, (double)i, (double)j, sign, &wa) ||
+                    !edge(c, a, (double)i, (double)j, sign, &wb) ||
+                    !edge(a, b, (double)i, (double)j, sign, &wc))
+                    continue;
+                double z = (wa * a[2] + wb * b[2] + wc * c[2]) / (wa + wb + wc);
+                if (visit(ctx, i, j, z, (int)sign))
+                    return -1;
+            }
+    }
+    return 0;
+}
+
+typedef struct {
+    unsigned char *flips;
+    Py_ssize_t ny, nz;
+} Parity;
+
+static int flip(void *ctx, Py_ssize_t i, Py_ssize_t j, double z, int up)
+{
+    Parity *p = ctx;
+    double k = ceil(z);
+    Py_ssize_t kk = k > 0 ? (k < (double)p->nz ? (Py_ssize_t)k : p->nz) : 0;
+    p->flips[(i * p->ny + j) * (p->nz + 1) + kk] ^= 1;
+    (void)up;
+    return 0;
+}
+
+typedef struct {
+    Crossing *hits;
+    Py_ssize_t n, cap, ny;
+} Collect;
+
+static int collect(void *ctx, Py_ssize_t i, Py_ssize_t j, double z, int up)
+{
+    Collect *c = ctx;
+    if (c->n == c->cap) {
+        Crossing *more = realloc(c->hits, 2 * c->cap * sizeof(Crossing));
+        if (more == NULL)
+            return -1;
+        c->hits = more;
+        c->cap *= 2;
+    }
+    c->hits[c->n].ray = i * c->ny + j;
+    c->hits[c->n].z = z;
+    c->hits[c->n].up = up;
+    c->n++;
+    return 0;
+}
+
+static int by_height(const void *a, const void *b)
+{
+    double za = ((const Crossing *)a)->z, zb = ((const Crossing *)b)->z;
+    return (za > zb) - (za < zb);
+}
+
+/* 0 on success (lo, hi, excess set), -1 when out of memory. `tri`: f triangles of 3 vertices
+ * (x, y, z), x and y >= 0. `excess`: the summed length, along the rays, of their stretches wound
+ * other than 0 or 1 times, each weighted by how far beyond (|w| for w < 0, w - 1 for w > 1). */
+static int winding(const double *tri, Py_ssize_t f, long *lo_out, long *hi_out,
+                   double *excess_out)
+{
+    Py_ssize_t nx = 1, ny = 1;
+    for (Py_ssize_t k = 0; k < 3 * f; k++) {
+        const double *p = tri + 3 * k;
+        if (p[0] + 1 > nx)
+            nx = (Py_ssize_t)floor(p[0]) + 1;
+        if (p[1] + 1 > ny)
+            ny = (Py_ssize_t)floor(p[1]) + 1;
+    }
+    Collect col = {malloc((4 * f + 16) * sizeof(Crossing)), 0, 4 * f + 16, ny};
+    if (col.hits == NULL || scan(tri, f, nx, ny, collect, &col) < 0) {
+        free(col.hits);
+        return -1;
+    }
+    Crossing *hits = col.hits;
+    Py_ssize_t n = col.n;
+    /* Bucket by ray (a counting sort), then each ray's crossings by height. */
+    Py_ssize_t rays = nx * ny;
+    Py_ssize_t *start = calloc(rays + 1, sizeof(Py_ssize_t));
+    Crossing *sorted = malloc((n ? n : 1) * sizeof(Crossing));
+    if (start == NULL || sorted == NULL) {
+        free(hits);
+        free(start);
+        free(sorted);
+        return -1;
+    }
+    for (Py_ssize_t k = 0; k < n; k++)
+        start[hits[k].ray + 1]++;
+    for (Py_ssize_t r = 0; r < rays; r++)
+        start[r + 1] += start[r];
+    for (Py_ssize_t k = 0; k < n; k++)
+        sorted[start[hits[k].ray]++] = hits[k];
+    long lo = 0, hi = 0;
+    double excess = 0.0;
+    Py_ssize_t first = 0;
+    for (Py_ssize_t r = 0; r < rays; r++) {
+        /* (start[r] is now the end of ray r's crossings) */
+        Py_ssize_t end = start[r];
+        if (end - first > 1)
+            qsort(sorted + first, end - first, sizeof(Crossing), by_height);
+        long w = 0;
+        for (Py_ssize_t k = first; k < end; k++) {
+            w -= sorted[k].up;
+            /* Crossings at one height are one event: a ray along a silhouette edge meets the
+             * front and the back face there, leaving and entering at once. */
+            if (k + 1 < end && sorted[k + 1].z == sorted[k].z)
+                continue;
+            if (w < lo)
+                lo = w;
+            if (w > hi)
+                hi = w;
+            /* up to the next crossing the ray is wound w times: beyond 0 or 1 counts */
+            long beyond = w < 0 ? -w : (w > 1 ? w - 1 : 0);
+            if (beyond && k + 1 < end)
+                excess += (double)beyond * (sorted[k + 1].z - sorted[k].z);
+        }
+        first = end;
+    }
+    free(hits);
+    free(start);
+    free(sorted);
+    *lo_out = lo;
+    *hi_out = hi;
+    *excess_out = excess;
+    return 0;
+}
+
+/* The triangles' buffer: a C-contiguous float64 (F, 3, 3) array of finite coordinates. */
+static int get_triangles(PyObject *obj, Py_buffer *view, Py_ssize_t *f)
+{
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return -1;
+    const char *fmt = view->format ? view->format : "B";
+    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
+        fmt++;
+    *f = view->len / (9 * (Py_ssize_t)sizeof(double));
+    if (strcmp(fmt, "d") != 0 || view->len != 9 * *f * (Py_ssize_t)sizeof(double)) {
+        PyBuffer_Release(view);
+        PyErr_SetString(PyExc_ValueError, "triangles: expected a C-contiguous float64 (F, 3, 3) array");
+        return -1;
+    }
+    const double *tri = (const double *)view->buf;
+    for (Py_ssize_t k = 0; k < 9 * *f; k++)
+        if (!isfinite(tri[k])) {
+            PyBuffer_Release(view);
+            PyErr_SetString(PyExc_ValueError, "triangles: coordinates must be finite");
+            return -1;
+        }
+    return 0;
+}
+
+PyDoc_STRVAR(windings_doc,
+"windings(triangles) -> (lo, hi, excess)\n\n"
+"The least and greatest winding number (0 counted) of a closed mesh about the rays at integer\n"
+"(x, y), and the summed length of the rays' stretches wound beyond 0 or 1, times how far beyond:\n"
+"triangles is a C-contiguous float64 array (F, 3, 3) of vertex coordinates, x, y >= 0.");
+
+static PyObject *py_windings(PyObject *self, PyObject *args)
+{
+    PyObject *obj;
+    if (!PyArg_ParseTuple(args, "O", &obj))
+        return NULL;
+    Py_buffer view = {0};
+    Py_ssize_t f;
+    if (get_triangles(obj, &view, &f) < 0)
+        return NULL;
+    const double *tri = (const double *)view.buf;
+    for (Py_ssize_t k = 0; k < 9 * f; k++)
+        if ((k % 3) < 2 && tri[k] < 0) {
+            PyBuffer_Release(&view);
+            PyErr_SetString(PyExc_ValueError, "triangles: x and y must be >= 0");
+            return NULL;
+        }
+    long lo = 0, hi = 0;
+    double excess = 0.0;
+    int status;
+    Py_BEGIN_ALLOW_THREADS
+    status = winding(tri, f, &lo, &hi, &excess);
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&view);
+    if (status < 0)
+        return PyErr_NoMemory();
+    return Py_BuildValue("(lld)", lo, hi, excess);
+}
+
+PyDoc_STRVAR(parity_doc,
+"parity(triangles, flips)\n\n"
+"For each crossing of the rays 0 <= i < nx, 0 <= j < ny with a triangle (a C-contiguous float64\n"
+"array (F, 3, 3) of vertex coordinates), flip the bit flips[i, j, k], k the first integer at or\n"
+"above the crossing's height clipped to [0, nz]: flips is a C-contiguous uint8 array\n"
+"(nx, ny, nz + 1), whose running XOR along its last axis is then the even-odd mask.");
+
+static PyObject *py_parity(PyObject *self, PyObject *args)
+{
+    PyObject *obj, *flips_obj;
+    Py_ssize_t nx, ny, nz;
+    if (!PyArg_ParseTuple(args, "O(nnn)O", &obj, &nx, &ny, &nz, &flips_obj))
+        return NULL;
+    if (nx < 1 || ny < 1 || nz < 0) {
+        PyErr_SetString(PyExc_ValueError, "the grid must have at least one ray");
+        return NULL;
+    }
+    Py_buffer view = {0}, out = {0};
+    Py_ssize_t f;
+    if (get_triangles(obj, &view, &f) < 0)
+        return NULL;
+    if (PyObject_GetBuffer(flips_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) < 0) {
+        PyBuffer_Release(&view);
+        return NULL;
+    }
+    if (out.itemsize != 1 || out.len / nx / ny != nz + 1 || out.len != nx * ny * (nz + 1)) {
+        PyBuffer_Release(&view);
+        PyBuffer_Release(&out);
+        PyErr_SetString(PyExc_ValueError, "flips: expected a C-contiguous uint8 array (nx, ny, nz + 1)");
+        return NULL;
+    }
+    Parity par = {(unsigned char *)out.buf, ny, nz};
+    Py_BEGIN_ALLOW_THREADS
+    scan((const double *)view.buf, f, nx, ny, flip, &par);
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&view);
+    PyBuffer_Release(&out);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef methods[] = {
+    {"windings", py_windings, METH_VARARGS, windings_doc},
+    {"parity", py_parity, METH_VARARGS, parity_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "_scan",
+    "Compiled scan conversion of closed meshes along rays (masks and winding numbers) for "
+    "segsnake.rasterize.", -1, methods,
+};
+
+PyMODINIT_FUNC PyInit__scan(void)
+{
+    return PyModule_Create(&module);
+}
