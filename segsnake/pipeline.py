@@ -552,9 +552,11 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 f"{contrast / intensity.sigma:.2f} x the click's spread; check the initialization")
         if config.polarity in ("bright", "dark"):
             polarity = 1 if config.polarity == "bright" else -1
-        run.timings["edge_map_s"] += time.perf_counter() - t0
         if k == p.two_class_rounds:
+            separated = rg.class_separation(sub, inside, shell)
+            run.timings["edge_map_s"] += time.perf_counter() - t0
             break
+        run.timings["edge_map_s"] += time.perf_counter() - t0
 
         def density(w_win, out, shell=shell):
             # The two classes with the outside read around the round's starting surface (in a
@@ -599,6 +601,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         final = run.last
     settings = {"energy": "region", "intensity_model": intensity.to_dict(),
                 "contrast": contrast, "separation": contrast / intensity.sigma,
+                # (null for two constant classes: JSON has no infinity)
+                "class_separation": separated if math.isfinite(separated) else None,
                 "boundary_fraction": on_step, "window": [list(window.lo), list(window.hi)],
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p),
                 "restart": record}

@@ -35,7 +35,7 @@ from segsnake.qc import click_index, write_qc_picture
 from segsnake.saved_snake import image_from_world, load_snake, restart_record, world_from_image
 
 __all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes", "segment_file",
-           "render_file"]
+           "render_file", "result_warnings"]
 
 OUTPUT_NAMES = ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png")
 # A cylinder's tube profile along its centerline (segsnake.profile), written with the others.
@@ -334,13 +334,10 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         "energy": result.energy,
         "iterations": result.iterations,
         "polarity": result.polarity,
-        "warnings": list(volume.warnings) + truth_warnings + [
-            f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
-            f"its order (iteration or round cap reached): the surface may be less accurate"
-            for i, h in enumerate(result.history) if not h.get("quadrature_resolved", True)],
+        "warnings": list(volume.warnings) + truth_warnings + result_warnings(result),
     }
-    quality = {k: result.settings[k] for k in ("separation", "boundary_fraction")
-               if k in result.settings}
+    quality = {k: result.settings[k] for k in ("separation", "class_separation",
+                                                "boundary_fraction") if k in result.settings}
     if quality:
         summary["quality"] = quality
     if truth is not None:
@@ -486,6 +483,24 @@ def _render_locked(snake_path, image_path, out_dir, mesh, overwrite, names, t_st
     summary["timings"] = timings
     summary["outputs"] = _outputs(out_dir, names, mesh)
     return summary
+
+
+def result_warnings(result) -> list[str]:
+    """What a segmentation's own record says may be wrong with it: a stage whose quadrature was
+    not resolved, and (the region energy) an inside and outside that overlap in intensity
+    (:func:`segsnake.region.class_separation` below the region parameters'
+    ``min_class_separation``)."""
+    out = [f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
+           f"its order (iteration or round cap reached): the surface may be less accurate"
+           for i, h in enumerate(result.history) if not h.get("quadrature_resolved", True)]
+    separated = result.settings.get("class_separation")
+    least = result.settings.get("region_params", {}).get("min_class_separation")
+    if separated is not None and least is not None and separated < least:
+        out.append(f"the intensities inside the result and just outside it overlap (their "
+                   f"medians differ by {separated:.2f} of their spread, below {least:g}): its "
+                   f"boundary is weak or it leaked into its surroundings; check it (a shape prior "
+                   f"may hold it)")
+    return out
 
 
 def _load_truth(path: str, volume, label: int | None, truth_label_option: str

@@ -119,6 +119,7 @@ def test_segment_end_to_end(ball, tmp_path, capsys):
     summary = json.loads(lines[0])
     assert summary["dice"] >= 0.95 and summary["jaccard"] >= 0.9
     assert summary["shape"] == [24, 24, 24] and summary["warnings"] == []
+    assert summary["quality"]["class_separation"] > 5  # far from overlapping its outside
     assert sorted(os.listdir(out)) == sorted(OUTPUT_NAMES)
     assert snapshot(image.parent) == before
 
@@ -654,3 +655,23 @@ def test_threads_do_not_change_the_result(ball, done, tmp_path, capsys, monkeypa
     assert rc == 2 and stdout == ""
     one_error_line(err, parallel.ENV, "'lots'")
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_result_that_overlaps_its_outside_is_warned_about():
+    from types import SimpleNamespace
+
+    from segsnake.runner import result_warnings
+
+    def result(separated, least=1.0, resolved=True):
+        return SimpleNamespace(history=[{"stage": "two classes, round 3",
+                                         "quadrature_resolved": resolved}],
+                               settings={"class_separation": separated,
+                                         "region_params": {"min_class_separation": least}})
+
+    (text,) = result_warnings(result(0.46))
+    assert "0.46 of their spread, below 1" in text
+    assert result_warnings(result(1.2)) == []
+    assert len(result_warnings(result(1.2, least=1.5))) == 1
+    assert result_warnings(result(None)) == []  # two constant classes
+    (text,) = result_warnings(result(3.0, resolved=False))
+    assert text.startswith("stage 1 (two classes, round 3) ended with a quadrature")

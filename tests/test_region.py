@@ -28,6 +28,21 @@ def test_intensity_model_is_the_median_and_the_mad_with_a_floor():
         IntensityModel.from_samples(np.full(30, 7.0), image_range=0.0)
 
 
+def test_class_separation_is_the_distance_of_the_medians_in_pooled_spreads():
+    from segsnake.region import class_separation
+
+    rng = np.random.default_rng(3)
+    image = np.concatenate([rng.normal(10.0, 2.0, 200_000), rng.normal(13.0, 1.0, 200_000)])
+    inside = np.arange(len(image)) < 200_000
+    # |10 - 13| / sqrt((2^2 + 1^2) / 2) = 1.897 (the MAD of a Gaussian is its spread)
+    assert class_separation(image.astype(np.float32), inside, ~inside) == \
+        pytest.approx(3 / math.sqrt(2.5), rel=0.01)
+    # constant classes: apart, or one
+    flat = np.where(inside, np.float32(1), np.float32(0))
+    assert class_separation(flat, inside, ~inside) == math.inf
+    assert class_separation(np.ones(10, np.float32), inside[:10] | True, ~inside[:10] | True) == 0
+
+
 def test_region_density_changes_sign_where_the_click_and_the_uniform_outside_agree():
     m = IntensityModel(mu=100.0, sigma=5.0, range=400.0)
     z_c = math.sqrt(2 * math.log(m.range / (m.sigma * math.sqrt(2 * math.pi))))
