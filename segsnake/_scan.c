@@ -63,6 +63,8 @@ static int scan(const double *tri, Py_ssize_t f, Py_ssize_t nx, Py_ssize_t ny, v
         double sign = area > 0 ? 1.0 : -1.0;
         double x0 = ceil(fmin(a[0], fmin(b[0], c[0]))), x1 = floor(fmax(a[0], fmax(b[0], c[0])));
         double y0 = ceil(fmin(a[1], fmin(b[1], c[1]))), y1 = floor(fmax(a[1], fmax(b[1], c[1])));
+        if (x1 < 0 || y1 < 0 || x0 > (double)(nx - 1) || y0 > (double)(ny - 1))
+            continue; /* misses the grid (and far coordinates are never cast) */
         Py_ssize_t i0 = x0 > 0 ? (Py_ssize_t)x0 : 0, j0 = y0 > 0 ? (Py_ssize_t)y0 : 0;
         Py_ssize_t i1 = x1 < (double)(nx - 1) ? (Py_ssize_t)x1 : nx - 1;
         Py_ssize_t j1 = y1 < (double)(ny - 1) ? (Py_ssize_t)y1 : ny - 1;
