@@ -33,7 +33,8 @@ typedef struct {
 } Crossing;
 
 /* The edge function of p -> q at (x, y), times `sign`, and whether (x, y) is on the triangle's
- * side of it (ties by the top-left rule); see rasterize._edge. */
+ * side of it (ties by the top-left rule: of two triangles that traverse a shared edge in
+ * opposite directions exactly one takes a point on it). */
 static int edge(const double *p, const double *q, double x, double y, double sign, double *w)
 {
     int swap = (q[0] < p[0]) || (q[0] == p[0] && q[1] < p[1]);

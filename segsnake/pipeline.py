@@ -1132,7 +1132,8 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         iterations += res.iterations
         evaluations += res.evaluations
         history += res.history
-    return model, {"polish_iterations": polish,"energy": final_energy, "iterations": iterations, "quadrature_order": order,
+    return model, {"polish_iterations": polish, "energy": final_energy,
+                   "iterations": iterations, "quadrature_order": order,
                    "quadrature_checks": checks, "quadrature_resolved": resolved,
                    "volume_mm3": model.volume(order=4),
                    "evaluations": evaluations, "converged": res.converged,

@@ -64,11 +64,13 @@ def crossing_volume(model: SplineSurface) -> float:
     chord ``h`` apart, each standing for ``h^2`` of area: a crossing narrower than that may be
     missed until it grows to it.
     """
+    from segsnake._scan import windings as kernel
+
     n = CROSSING_PER_INTERVAL
     points, tris = model.triangles(n * model.m1, n * model.m2)
-    h = 0.5 * float(np.linalg.norm(points[tris] - points[np.roll(tris, 1, axis=1)],
-                                   axis=-1).mean())
-    return windings(points / h, tris)[2] * h ** 3
+    corners = points[tris]
+    h = 0.5 * float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1).mean())
+    return kernel(_on_rays(corners / h))[2] * h ** 3
 
 
 def rasterize(model: SplineSurface, shape: Sequence[int], spacing: Sequence[float]) -> NDArray[np.bool_]:
@@ -138,13 +140,13 @@ def windings(points: NDArray, tris: NDArray) -> tuple[int, int, float]:
     """
     from segsnake._scan import windings as kernel
 
-    return kernel(_ray_triangles(points, tris))
-
-
-def _ray_triangles(points: NDArray, tris: NDArray) -> NDArray:
-    """The triangles' vertex coordinates ``(f, 3, 3)`` moved by whole ray spacings so that
-    ``x, y >= 0`` (the winding kernel's input; rays stay at integer ``(x, y)``)."""
     points = np.asarray(points, dtype=np.float64)
-    origin = np.floor(points.min(axis=0)) if len(points) else np.zeros(3)
+    return kernel(_on_rays(points[np.asarray(tris, dtype=np.int64)]))
+
+
+def _on_rays(corners: NDArray) -> NDArray:
+    """Triangles' vertex coordinates ``(f, 3, 3)`` moved by whole ray spacings so that
+    ``x, y >= 0`` (the winding kernel's input; the rays stay at integer ``(x, y)``)."""
+    origin = np.floor(corners.reshape(-1, 3).min(axis=0)) if corners.size else np.zeros(3)
     origin[2] = 0.0
-    return np.ascontiguousarray((points - origin)[np.asarray(tris, dtype=np.int64)])
+    return np.ascontiguousarray(corners - origin)

@@ -32,7 +32,8 @@ from segsnake.centerline_files import read_centerline, resolve_centerline
 from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
 from segsnake.qc import click_index, write_qc_picture
-from segsnake.saved_snake import image_from_world, load_snake, restart_record, world_from_image
+from segsnake.saved_snake import image_from_world, load_snake, load_snake_and_record, \
+    world_from_image
 
 __all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes", "segment_file",
            "render_file", "result_warnings"]
@@ -280,7 +281,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
 
     t0 = time.perf_counter()
     # A bad --init or --centerline file is refused before the image is read.
-    saved = load_snake(config.init) if config.init is not None else None
+    saved, saved_record = load_snake_and_record(config.init) if config.init is not None \
+        else (None, None)
     if saved is not None and saved.kind == "cylinder":
         names = _add_profile(out_dir, overwrite, names, _inputs(image_path, truth_path, config))
     centerline_file = config.centerline if isinstance(config.centerline, str) else None
@@ -300,7 +302,7 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     init_model = init_record = None
     if saved is not None:
         init_model, config = _start_from(saved, config, volume)
-        init_record = restart_record(config.init)
+        init_record = saved_record
 
     extra = None
     if config.prior is not None and config.prior_weight > 0:

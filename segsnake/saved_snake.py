@@ -41,7 +41,7 @@ from segsnake.io import _LPS_TO_RAS
 from segsnake.markups import document_points, read_json
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, model_from_dict
 
-__all__ = ["MARKUPS_SCHEMA", "TAG", "load_snake", "restart_record", "snake_markups",
+__all__ = ["MARKUPS_SCHEMA", "TAG", "load_snake", "load_snake_and_record", "snake_markups",
            "world_from_image", "image_from_world"]
 
 MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/"
@@ -212,7 +212,8 @@ def _model_from_markups(doc: Any, path: str) -> SplineSurface:
 
 # ------------------------------------------------------------------------------ files
 def load_snake(path: str) -> SplineSurface:
-    """A saved snake in world RAS mm, from ``snake.json`` or a markups file of ``export-points``.
+    """A saved snake in world RAS mm, from ``snake.json`` or a markups file of ``export-points``
+    (:func:`load_snake_and_record` without the record).
 
     Parameters
     ----------
@@ -233,9 +234,16 @@ def load_snake(path: str) -> SplineSurface:
         model without an image grid; a markups file whose points were added or deleted, or
         lack the segsnake descriptions. The message starts with the file.
     """
+    return load_snake_and_record(path)[0]
+
+
+def load_snake_and_record(path: str) -> tuple[SplineSurface, dict[str, Any] | None]:
+    """:func:`load_snake`, and from the same reading of the file its ``restart`` record: what
+    defines the energy its last stage ended in (:func:`segsnake.pipeline._segment_region`), or
+    None for a markups file, a ``render`` output or a result without one."""
     doc = read_json(path, "snake file")
     if isinstance(doc, dict) and "markups" in doc:
-        return _model_from_markups(doc, path)
+        return _model_from_markups(doc, path), None
     fmt = doc.get("format") if isinstance(doc, dict) else None
     if fmt == "segsnake-model":
         raise InputError(f"{path}: a segsnake model without an image grid (no affine); give a "
@@ -255,16 +263,6 @@ def load_snake(path: str) -> SplineSurface:
     except (KeyError, TypeError, ValueError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"{path}: not a readable segsnake result ({msg})") from None
-    return world_from_image(model, affine, spacing)
-
-
-def restart_record(path: str) -> dict[str, Any] | None:
-    """The ``restart`` record of a ``snake.json`` written by ``segment`` (what defines the energy
-    its last stage ended in, :func:`segsnake.pipeline._segment_region`), or None: a markups file,
-    a ``render`` output or a result without one. Read after :func:`load_snake` accepted the file.
-    """
-    doc = read_json(path, "snake file")
-    if not isinstance(doc, dict) or doc.get("format") != "segsnake-result":
-        return None
-    record = (doc.get("settings") or {}).get("restart")
-    return record if isinstance(record, dict) else None
+    settings = doc.get("settings")
+    record = settings.get("restart") if isinstance(settings, dict) else None
+    return world_from_image(model, affine, spacing), (record if isinstance(record, dict) else None)
