@@ -30,7 +30,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import scipy.optimize as opt
 from numpy.typing import NDArray
 
 from segsnake.surfaces import CylinderModel, SplineSurface, gauss_legendre_grid
@@ -198,6 +197,8 @@ def max_diameter(model: SplineSurface, samples: int = 8) -> float:
     ``(u, v)`` with the exact gradient; planar cylinder caps never hold the farthest point
     alone (a farthest point of a convex cap lies on its rim).
     """
+    import scipy.optimize as opt  # (imported here: the segment command does not need it)
+
     from scipy.spatial import ConvexHull
 
     nu, nv = samples * model.m1, samples * model.m2

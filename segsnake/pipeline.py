@@ -476,9 +476,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     run.timings["edge_map_s"] = time.perf_counter() - t0
 
     def stage(start, density, name, tol=None, stationary=False, resume=None):
-        # One stage in a window around the surface; while its result comes near a face of the
-        # window (which held it back), again from the same start in a window around both
-        # (segsnake.window).
+        # One stage in a window around the surface; while its surface comes near a face of the
+        # window (which holds it back from then on), again from the same start in a window
+        # around both (segsnake.window).
         nonlocal window
         margin = p.window_mm
         while True:
@@ -497,8 +497,11 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             lookup = run.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
             run.timings["edge_map_s"] += sum(spent)
             run.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
-            model = window.model_out(run.region(window.model_in(start), lookup, name, tol,
-                                                stationary, resume))
+            # (a surface that comes near a face of the window leaves the stage at once: its
+            # further course is the window's, not the image's, and is run again anyway)
+            model = window.model_out(run.region(
+                window.model_in(start), lookup, name, tol, stationary, resume,
+                leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm)))
             resume = None  # (in the window's coordinates: a grown window starts afresh)
             del lookup
             if not window.reaches(model, p.shell_mm):
@@ -877,9 +880,10 @@ class _Run:
         self.last: dict[str, Any] | None = None  # the last stage's energy and functional
 
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
-               weight=-1.0, region=False, stationary=False, resume=None):
+               weight=-1.0, region=False, stationary=False, resume=None, leaves=None):
         model, res = _run_stage(model, lookup, weight, self.config, self.bounds, self.extra, band,
-                                feature_mm, tol, node_spacing, region, stationary, resume)
+                                feature_mm, tol, node_spacing, region, stationary, resume,
+                                leaves)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         # What defines the energy this stage ended in (its lookup is self.lookup), for the
@@ -903,14 +907,14 @@ class _Run:
                         FOV_PAD * np.asarray(self.sp))
 
     def region(self, model, lookup: "_Shifted", name: str, tol: float | None = None,
-               stationary: bool = False, resume=None):
+               stationary: bool = False, resume=None, leaves=None):
         """Minimize the volume integral of a density (:mod:`segsnake.region`) given by its
         :meth:`region_lookup` (the model in the window's coordinates); ``self.lookup`` keeps
-        the lookup. ``stationary``, ``resume``: see :func:`_run_stage`."""
+        the lookup. ``stationary``, ``resume``, ``leaves``: see :func:`_run_stage`."""
         self.lookup = lookup
         p = self.region_params
         return self._stage(name, model, lookup, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
-                           region=True, stationary=stationary, resume=resume)
+                           region=True, stationary=stationary, resume=resume, leaves=leaves)
 
     def capture(self, model, edges: NDArray, smooth_mm: float,
                 node_spacing: float = CAPTURE_NODE_SPACING):
@@ -1038,7 +1042,7 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
-               node_spacing=None, region=False, stationary=False, resume=None):
+               node_spacing=None, region=False, stationary=False, resume=None, leaves=None):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -1069,9 +1073,24 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     :data:`segsnake.optimize.POLISH_ITER` iterations past that rule and within the stage's
     iteration cap; the rounds before it run as without). The polish, like a resumed round,
     checks stationarity before its first step: a restart from the result takes none.
+    ``leaves(surface)``: the stage ends at the first accepted iterate for which it is True
+    (``left`` in the record; no check, no polish): the caller runs it again elsewhere.
     """
     t0 = time.perf_counter()
     iterations, evaluations, history, checks = 0, 0, [], []
+    left = False
+
+    def leaving(callback):
+        if leaves is None:
+            return callback
+
+        def during(iteration: int, energy: float, params: NDArray) -> bool:
+            nonlocal left
+            left = leaves(model.with_params(params))
+            return left or callback(iteration, energy, params)
+
+        return during
+
     floor = np.array([4, 4])
     resolved = False
     tol = tol or max(config.tol, 1e-5)
@@ -1091,13 +1110,16 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         admissible = _Admissible(reference, max_interval, follow=region)
         res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
                               tol=tol, bounds_mm=bounds, max_step_mm=band,
-                              admissible=admissible, callback=admissible.following(check.during),
+                              admissible=admissible,
+                              callback=leaving(admissible.following(check.during)),
                               stationary_tol=tol if resumed and stationary else None)
         model, final_energy = res.model, res.energy
         iterations += res.iterations
         evaluations += res.evaluations
         history += res.history
         capped = iterations >= config.max_iter
+        if left:
+            break
         if check.failed:
             # Caught while running: on at the finer order, if iterations are left, from the
             # last shape whose energy was trusted. (Going on from the exploited shape, a tube
@@ -1122,7 +1144,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
             break
         floor = np.array(fine)
     polish = None
-    if stationary and not capped and not check.failed:
+    if stationary and not capped and not check.failed and not left:
         # The polish: the last round's energy again, from its end, until it is stationary.
         res = minimize_energy(model, energy, max_iter=config.max_iter - iterations, tol=tol,
                               bounds_mm=bounds, max_step_mm=band,
@@ -1138,7 +1160,8 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
                    "volume_mm3": model.volume(order=4),
                    "evaluations": evaluations, "converged": res.converged,
                    "message": res.message, "stationarity": res.stationarity, "history": history,
-                   "time_s": time.perf_counter() - t0, "functional": (reference, order)}
+                   "time_s": time.perf_counter() - t0, "functional": (reference, order),
+                   **({"left": True} if left else {})}
 
 
 class _QuadratureCheck:
@@ -1240,6 +1263,7 @@ class _Admissible:
         v = (rows + 0.5) / (per_interval * start.m2)
         self.basis = start.grid_basis(u, v)
         self.n0 = self._normals(start.params)
+        self._tested = (start.params, self.n0)
         self.rings = None
         if start.kind == "cylinder":
             # The rings' signed areas, as the region stages' barrier measures them.
@@ -1263,8 +1287,11 @@ class _Admissible:
             return False
         if self.rings is not None and np.any(self.rings.areas(params)[0] < self.min_area):
             return False
-        if not np.all(np.einsum("uvd,uvd->uv", self._normals(params), self.n0) > 0):
+        normals = self._normals(params)
+        if not np.all(np.einsum("uvd,uvd->uv", normals, self.n0) > 0):
             return False
+        # (kept: the step accepted is the last one tested, and following() compares with it)
+        self._tested = (params.copy(), normals)
         return not self.test_crossings or crossing_volume(surface) <= CROSSING_RTOL * abs(volume)
 
     def following(self, callback: Callable[[int, float, NDArray], bool]):
@@ -1274,7 +1301,8 @@ class _Admissible:
             return callback
 
         def accept(iteration: int, energy: float, params: NDArray) -> bool:
-            self.n0 = self._normals(params)
+            tested, normals = self._tested
+            self.n0 = normals if np.array_equal(tested, params) else self._normals(params)
             return callback(iteration, energy, params)
 
         return accept

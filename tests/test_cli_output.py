@@ -49,6 +49,19 @@ def test_version(capsys):
     assert capsys.readouterr().out == f"segsnake {segsnake.__version__}\n"
 
 
+def test_one_command_imports_only_its_module():
+    # `segsnake segment` does not pay for the phantom and fit commands' numerical modules; the
+    # parser of every command still lists them all (`segsnake --help`).
+    code = ("import sys; from segsnake.cli import build_parser, COMMANDS; "
+            "p = build_parser('segment'); "
+            "print('segsnake.phantoms' in sys.modules, 'segsnake.fit' in sys.modules); "
+            "sub = [a for a in build_parser()._actions if hasattr(a, 'choices') and a.choices]; "
+            "print(sorted(sub[0].choices) == sorted(COMMANDS))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "False", "True"]
+
+
 # ------------------------------------------------------------------------ --quiet and --json
 def test_every_command_takes_quiet_and_json():
     parser = build_parser()

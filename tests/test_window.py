@@ -9,6 +9,7 @@ from segsnake.metrics import dice
 from segsnake.phantoms import make_phantom
 from segsnake.pipeline import segment_volume
 from segsnake.region import RegionParams
+from segsnake.runner import result_warnings
 from segsnake.surfaces import CylinderModel, SphereModel
 from segsnake.window import Window, surface_box
 
@@ -50,6 +51,12 @@ def test_a_small_window_gives_the_whole_volumes_result():
     small, whole = runs[3.0], runs[1000.0]
     assert any(h.get("window_grown") for h in small.history)
     assert not any(h.get("window_grown") for h in whole.history)
+    # A run held back by its window stopped at the first iterate near its face (its further
+    # course was the window's), and its unresolved quadrature is no warning: it was discarded.
+    grown = [h for h in small.history if h.get("window_grown")]
+    assert all(h.get("left") and h["message"] == "stopped by callback" for h in grown)
+    assert not any(h.get("left") for h in small.history if not h.get("window_grown"))
+    assert not any("quadrature" in w for w in result_warnings(small))
     assert dice(small.mask, whole.mask) > 0.995
     assert dice(small.mask, ph.truth) == pytest.approx(dice(whole.mask, ph.truth), abs=0.005)
 
