@@ -477,10 +477,10 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
 
     def stage(start, density, name, tol=None, stationary=False, resume=None):
         # One stage in a window around the surface; while its surface comes near a face of the
-        # window (which holds it back from then on), again from the same start in a window
-        # around both (segsnake.window).
+        # window (which holds it back from then on), on from there in a window around both
+        # (segsnake.window).
         nonlocal window
-        margin = p.window_mm
+        margin, used = p.window_mm, 0
         while True:
             run.lookup = None  # (the last stage's: not needed while this one's is built)
 
@@ -501,14 +501,23 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             # further course is the window's, not the image's, and is run again anyway)
             model = window.model_out(run.region(
                 window.model_in(start), lookup, name, tol, stationary, resume,
-                leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm)))
-            resume = None  # (in the window's coordinates: a grown window starts afresh)
+                leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm), used=used))
             del lookup
             if not window.reaches(model, p.shell_mm):
                 return model
-            margin *= 2  # a surface that grows far needs few restarts
+            last = run.history[-1]
+            last["window_grown"] = True
+            old, margin = window, 2 * margin  # (a surface that grows far needs few windows)
             window = window.union(Window.around(model, image.shape, sp, margin))
-            run.history[-1]["window_grown"] = True
+            resume = None
+            if last.get("left"):
+                # Up to here the window's energy was the whole volume's: the stage goes on from
+                # this iterate with the same functional (reference surface, quadrature order).
+                reference = window.model_in(old.model_out(run.last["reference"]))
+                start, resume = model, (reference, tuple(run.last["order"]))
+                used += last["iterations"]
+            else:  # (ended near a face it never came near while running: afresh)
+                used = 0
 
     report("region", 0.1)
     if not on_boundary:
@@ -880,10 +889,10 @@ class _Run:
         self.last: dict[str, Any] | None = None  # the last stage's energy and functional
 
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
-               weight=-1.0, region=False, stationary=False, resume=None, leaves=None):
+               weight=-1.0, region=False, stationary=False, resume=None, leaves=None, used=0):
         model, res = _run_stage(model, lookup, weight, self.config, self.bounds, self.extra, band,
                                 feature_mm, tol, node_spacing, region, stationary, resume,
-                                leaves)
+                                leaves, used)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         # What defines the energy this stage ended in (its lookup is self.lookup), for the
@@ -907,14 +916,15 @@ class _Run:
                         FOV_PAD * np.asarray(self.sp))
 
     def region(self, model, lookup: "_Shifted", name: str, tol: float | None = None,
-               stationary: bool = False, resume=None, leaves=None):
+               stationary: bool = False, resume=None, leaves=None, used: int = 0):
         """Minimize the volume integral of a density (:mod:`segsnake.region`) given by its
         :meth:`region_lookup` (the model in the window's coordinates); ``self.lookup`` keeps
-        the lookup. ``stationary``, ``resume``, ``leaves``: see :func:`_run_stage`."""
+        the lookup. ``stationary``, ``resume``, ``leaves``, ``used``: see :func:`_run_stage`."""
         self.lookup = lookup
         p = self.region_params
         return self._stage(name, model, lookup, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
-                           region=True, stationary=stationary, resume=resume, leaves=leaves)
+                           region=True, stationary=stationary, resume=resume, leaves=leaves,
+                           used=used)
 
     def capture(self, model, edges: NDArray, smooth_mm: float,
                 node_spacing: float = CAPTURE_NODE_SPACING):
@@ -1042,7 +1052,8 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
-               node_spacing=None, region=False, stationary=False, resume=None, leaves=None):
+               node_spacing=None, region=False, stationary=False, resume=None, leaves=None,
+               used=0):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -1074,7 +1085,8 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     iteration cap; the rounds before it run as without). The polish, like a resumed round,
     checks stationarity before its first step: a restart from the result takes none.
     ``leaves(surface)``: the stage ends at the first accepted iterate for which it is True
-    (``left`` in the record; no check, no polish): the caller runs it again elsewhere.
+    (``left`` in the record; no check, no polish): the caller goes on elsewhere. ``used``: the
+    iterations the stage already took there (they count against ``config.max_iter``).
     """
     t0 = time.perf_counter()
     iterations, evaluations, history, checks = 0, 0, [], []
@@ -1094,6 +1106,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     floor = np.array([4, 4])
     resolved = False
     tol = tol or max(config.tol, 1e-5)
+    max_iter = config.max_iter - used
     for _ in range(8):
         reference, resumed = model, resume is not None
         if resumed:
@@ -1108,7 +1121,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         energy = _stage_energy(reference, lookup, weight, order, extra_energy, region)
         check = _QuadratureCheck(energy.terms[0], fine, checks, model.params)
         admissible = _Admissible(reference, max_interval, follow=region)
-        res = minimize_energy(model, energy, max_iter=max(config.max_iter - iterations, 1),
+        res = minimize_energy(model, energy, max_iter=max(max_iter - iterations, 1),
                               tol=tol, bounds_mm=bounds, max_step_mm=band,
                               admissible=admissible,
                               callback=leaving(admissible.following(check.during)),
@@ -1117,7 +1130,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
         iterations += res.iterations
         evaluations += res.evaluations
         history += res.history
-        capped = iterations >= config.max_iter
+        capped = iterations >= max_iter
         if left:
             break
         if check.failed:
@@ -1146,7 +1159,7 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
     polish = None
     if stationary and not capped and not check.failed and not left:
         # The polish: the last round's energy again, from its end, until it is stationary.
-        res = minimize_energy(model, energy, max_iter=config.max_iter - iterations, tol=tol,
+        res = minimize_energy(model, energy, max_iter=max_iter - iterations, tol=tol,
                               bounds_mm=bounds, max_step_mm=band,
                               admissible=_Admissible(reference, max_interval, follow=region),
                               stationary_tol=tol)

@@ -6,9 +6,9 @@ chest CT, a nucleus less of a head. A :class:`Window` is an axis-aligned box of 
 a model plus a margin; the model moves into the window's coordinates (a translation in mm of
 scaled index space) and back. Beyond the window the density is "not the object", as beyond the
 field of view; a surface that comes near a face of the window that is not a face of the volume
-is held back by it from then on (:meth:`Window.reaches`): its stage stops there and runs again,
-from where it started, in a window around both (so the result is the one the whole volume would
-give: the window only saves the work).
+would be held back by it from then on (:meth:`Window.reaches`): up to there the window's energy
+is the whole volume's, so its stage stops there and goes on from that iterate, with the same
+energy, in a window around the surface (the window only saves the work).
 """
 
 from __future__ import annotations

@@ -42,8 +42,8 @@ def test_reaches_only_the_window_faces_inside_the_volume():
 
 
 def test_a_small_window_gives_the_whole_volumes_result():
-    # The ball grows from a small start far beyond a 3 mm window: its stages run again from
-    # their start in larger windows, and end where the whole volume's do.
+    # The ball grows from a small start far beyond a 3 mm window: its stages go on in larger
+    # windows from where they came near a face, and end where the whole volume's do.
     ph = make_phantom("ball", seed=4, noise=0.1)
     config = SegmentConfig.from_mapping(perturbed_init(ph, 5))
     runs = {w: segment_volume(ph.image, ph.spacing, config, region_params=RegionParams(window_mm=w))
@@ -52,13 +52,27 @@ def test_a_small_window_gives_the_whole_volumes_result():
     assert any(h.get("window_grown") for h in small.history)
     assert not any(h.get("window_grown") for h in whole.history)
     # A run held back by its window stopped at the first iterate near its face (its further
-    # course was the window's), and its unresolved quadrature is no warning: it was discarded.
+    # course would be the window's), and its unresolved quadrature is no warning: the stage
+    # went on from there; its iterations count against the stage's cap.
     grown = [h for h in small.history if h.get("window_grown")]
     assert all(h.get("left") and h["message"] == "stopped by callback" for h in grown)
+    stages = [h["stage"] for h in small.history if not h.get("window_grown")]
+    assert stages == [h["stage"] for h in whole.history]
     assert not any(h.get("left") for h in small.history if not h.get("window_grown"))
     assert not any("quadrature" in w for w in result_warnings(small))
     assert dice(small.mask, whole.mask) > 0.995
     assert dice(small.mask, ph.truth) == pytest.approx(dice(whole.mask, ph.truth), abs=0.005)
+
+
+def test_a_stage_that_grows_its_window_keeps_one_iteration_cap():
+    # The iterations before the window grew count against the stage's cap: the whole volume's
+    # run would have stopped there too.
+    ph = make_phantom("ball", seed=4, noise=0.1)
+    config = SegmentConfig.from_mapping({**perturbed_init(ph, 5), "max_iter": 25})
+    res = segment_volume(ph.image, ph.spacing, config, region_params=RegionParams(window_mm=3.0))
+    first = [h for h in res.history if h["stage"] == "region"]
+    assert len(first) > 1 and first[0].get("left")
+    assert sum(h["iterations"] for h in first) <= 25
 
 
 def _tube_image(shape, direction, radius, seed, noise=0.15):
