@@ -85,8 +85,8 @@ class RegionParams:
     #: as it moves the surface. Measured on the real benchmark's sphere cases (docs/benchmarks.md,
     #: "Coarse to fine with a volume test"): every finer grid that raised a perfect-edge Dice
     #: changed the volume by 0.0-5.3 %; those that leaked into a neighbour or collapsed through
-    #: themselves by 15 % to 10 x. Every result is the same for any value from 7.5 % to 30 %
-    #: but one (a perturbed thalamus click's grid at +7.7 %).
+    #: themselves by 15 % to 10 x. Every result is the same from 10 % to 15 %, and all but one
+    #: from 7.5 % to 30 % (a thalamus grid at +7.7 %, a caudate one at +15 %).
     finer_volume: float = 0.1
     #: Relative energy change per iteration at which the stages before the last stop: each
     #: only places the surface for the next one's reading of the outside (measured on a lobed
