@@ -670,9 +670,13 @@ def _usable_restart(record, options: dict[str, Any], model: SplineSurface
 def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``), each started
     from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
-    it lowers the image energy by more than ``p.finer_gain`` of it (a finer grid always fits a
-    little better; what it must buy is detail the coarser one smoothed away). Returns the
-    surface and the ``run.last`` of the finer stage kept (None if none)."""
+    it refines the surface: it lowers the image energy by more than ``p.finer_gain`` of it (a
+    finer grid always fits a little better; what it must buy is detail the coarser one smoothed
+    away), and the volume it encloses stays within ``p.finer_volume`` of the coarser surface's
+    (detail comes back as bulges and necks whose volumes nearly cancel; a leak into a
+    neighbour or a fold through itself moves the whole volume). The first grid refused ends
+    the schedule, as does a finer stage that fails (a collapse). Returns the surface and the
+    ``run.last`` of the finer stage kept (None if none)."""
     from segsnake.resample import resample
 
     lookup, kept = run.lookup, None
@@ -684,14 +688,24 @@ def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | No
     for m in p.finer_m:
         if m <= min(model.m1, model.m2):
             continue
-        finer = run.region(resample(model, m, m), lookup, f"grid {m}x{m}", stationary=True)
+        last, name = run.last, f"grid {m}x{m}"
+        try:
+            finer = run.region(resample(model, m, m), lookup, name, stationary=True)
+        except SegmentationError as exc:
+            # (a finer surface that collapsed through itself is no refinement either)
+            run.history.append({"stage": name, "kept": False, "error": str(exc)})
+            break
         # both on the finer grid's nodes: intervals of the coarser one's size or less
         order = min(2 * quadrature_order(float(longest_intervals(finer).max()),
                                          p.edge_smooth_mm), MAX_ORDER)
         e, e_fine = image_energy(model, order), image_energy(finer, order)
         gain = (e - e_fine) / max(abs(e), 1e-300)
-        run.history[-1].update(image_energy_gain=gain, kept=bool(gain > p.finer_gain))
-        if gain <= p.finer_gain:
+        volume = abs(model.volume(order=4))
+        change = (finer.volume(order=4) - volume) / max(volume, 1e-300)
+        keep = bool(gain > p.finer_gain and abs(change) <= p.finer_volume)
+        run.history[-1].update(image_energy_gain=gain, volume_change=change, kept=keep)
+        if not keep:
+            run.last = last  # (the result's energy stays the coarser stage's)
             break
         model, kept = finer, run.last
     return model, kept

@@ -66,13 +66,28 @@ class RegionParams:
     #: Two-class stages, each reading the outside afresh beyond the previous one's surface (a
     #: surface inside the step reads part of the object as outside, which pulls it inwards).
     two_class_rounds: int = 3
-    #: Coarse to fine (``coarse_to_fine: true``, off by default: measured, it sharpens the
-    #: perfect-edge caudate from 0.879 to 0.925 but lets the real one leak into its
-    #: neighbours): after the two-class rounds on the initial grid (9 x 9 unless given), the last
-    #: round again on these finer grids (M1 = M2) in turn ...
+    #: Coarse to fine (``coarse_to_fine: true``, ``--coarse-to-fine``; off by default, see
+    #: docs/benchmarks.md, "Coarse to fine with a volume test": it raises the perfect-edge Dice
+    #: of five of the six sphere structures and the brain's from every click, but lowers three
+    #: leaked deep-structure results from perturbed clicks by 0.006-0.014): after the two-class rounds on
+    #: the 9 x 9 grid (a sphere whose M1, M2 are not given), the last round again on these finer
+    #: grids (M1 = M2) in turn, each from the L2 projection of the surface before it ...
     finer_m: tuple[int, ...] = (13, 17)
-    #: ... each kept while it lowers the image energy by more than this fraction of it.
+    #: ... each kept while it lowers the image energy by more than this fraction of it (a finer
+    #: grid always fits a little better; what it must buy is detail the coarser one smoothed
+    #: away) ...
     finer_gain: float = 0.01
+    #: ... and while it *refines* the surface rather than moving it: the volume it encloses stays
+    #: within this fraction of the coarser grid's (dimensionless, |V_fine - V_coarse| / V_coarse).
+    #: Detail that a coarser grid smoothed over comes back as bulges and as the necks between
+    #: them, which nearly cancel in volume; a finer grid that leaks through a gap into a
+    #: neighbour of the same intensity, or folds through itself, changes the volume by as much
+    #: as it moves the surface. Measured on the real benchmark's sphere cases (docs/benchmarks.md,
+    #: "Coarse to fine with a volume test"): every finer grid that raised a perfect-edge Dice
+    #: changed the volume by 0.0-5.3 %; those that leaked into a neighbour or collapsed through
+    #: themselves by 15 % to 10 x. Every result is the same from 10 % to 15 %, and all but one
+    #: from 7.5 % to 30 % (a thalamus grid at +7.7 %, a caudate one at +15 %).
+    finer_volume: float = 0.1
     #: Relative energy change per iteration at which the stages before the last stop: each
     #: only places the surface for the next one's reading of the outside (measured on a lobed
     #: blob: the first stage crept by 4e-5 per iteration for 200 iterations into the lobes,

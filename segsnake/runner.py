@@ -489,14 +489,15 @@ def _render_locked(snake_path, image_path, out_dir, mesh, overwrite, names, t_st
 
 def result_warnings(result) -> list[str]:
     """What a segmentation's own record says may be wrong with it: a stage whose quadrature was
-    not resolved (but not one that left its window, whose surface was discarded), and (the
-    region energy) an inside and outside that overlap in intensity
+    not resolved (not one that left its window, nor a finer grid that coarse to fine refused:
+    neither surface is the result), and (the region energy) an inside and outside that overlap
+    in intensity
     (:func:`segsnake.region.class_separation` below the region parameters'
     ``min_class_separation``)."""
     out = [f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
            f"its order (iteration or round cap reached): the surface may be less accurate"
            for i, h in enumerate(result.history)
-           if not h.get("quadrature_resolved", True) and not h.get("left")]
+           if not h.get("quadrature_resolved", True) and not h.get("left") and h.get("kept", True)]
     separated = result.settings.get("class_separation")
     least = result.settings.get("region_params", {}).get("min_class_separation")
     if separated is not None and least is not None and separated < least:

@@ -675,3 +675,10 @@ def test_a_result_that_overlaps_its_outside_is_warned_about():
     assert result_warnings(result(None)) == []  # two constant classes
     (text,) = result_warnings(result(3.0, resolved=False))
     assert text.startswith("stage 1 (two classes, round 3) ended with a quadrature")
+    # a finer grid that coarse to fine refused is not the result: its quadrature is no warning
+    refused = result(3.0)
+    refused.history.append({"stage": "grid 13x13", "quadrature_resolved": False, "kept": False})
+    assert result_warnings(refused) == []
+    refused.history[-1]["kept"] = True
+    (text,) = result_warnings(refused)
+    assert text.startswith("stage 2 (grid 13x13) ended with a quadrature")

@@ -187,3 +187,20 @@ def test_valid_values_pass_unchanged(tmp_path):
         seed_point=[10.0, 10.0, 15.0], max_iter=1, tol=1e-9, coarse_to_fine=False, prior_weight=2.0,
         prior_space="similarity", volume=0, nan="fill", polarity="dark")
     assert c == expected
+
+
+def test_coarse_to_fine_flag_overrides_the_file_both_ways(tmp_path):
+    from segsnake.cli import build_parser
+    from segsnake.commands.segment import config_from_args
+
+    on = tmp_path / "on.yaml"
+    on.write_text("coarse_to_fine: true\n")
+
+    def parse(*flags):
+        return config_from_args(build_parser().parse_args(["segment", "a.nii", "--out", "o",
+                                                           *flags]))
+
+    assert parse("--config", str(on)).coarse_to_fine
+    assert not parse("--config", str(on), "--no-coarse-to-fine").coarse_to_fine
+    assert parse("--coarse-to-fine").coarse_to_fine
+    assert not parse().coarse_to_fine

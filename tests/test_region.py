@@ -151,6 +151,16 @@ def test_coarse_to_fine_keeps_a_finer_grid_only_when_it_pays():
                            region_params=RegionParams(finer_gain=1e-4))
     assert cheap.model.m1 == cheap.model.m2 == 17
     assert dice(cheap.mask, ph.truth.astype(bool)) >= dice(dear.mask, ph.truth.astype(bool)) - 0.002
+    # A refinement: the lobes come back with the enclosed volume within a few per cent.
+    changes = [h["volume_change"] for h in cheap.history if h["stage"].startswith("grid")]
+    assert len(changes) == 2 and max(map(abs, changes)) < 0.05
+    # The volume test refuses a grid that moves more volume than finer_volume allows, and the
+    # result is then the coarser surface exactly.
+    tight = segment_volume(ph.image, ph.spacing, config, region_params=RegionParams(
+        finer_gain=1e-4, finer_volume=0.5 * abs(changes[0])))
+    grids = [h for h in tight.history if h["stage"].startswith("grid")]
+    assert [h["kept"] for h in grids] == [False] and tight.model.m1 == 9
+    assert np.array_equal(tight.mask, dear.mask) and tight.energy == dear.energy
 
 
 def test_boundary_fraction_is_the_share_of_the_surface_on_a_step():

@@ -88,10 +88,11 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                    help="region: the click's intensities against the rest of the image, then "
                         "the step (a sphere around a filled object; auto's choice there); edge: "
                         "the edge-map stages (auto's choice for cylinders and --feature surface)")
-    m.add_argument("--coarse-to-fine", action="store_true", default=None,
-                   help="region energy: after the 9 x 9 sphere, try 13 x 13 and 17 x 17, each kept "
-                        "while it lowers the energy by more than 1 %% (finer detail; may leak "
-                        "into similar neighbours)")
+    m.add_argument("--coarse-to-fine", action=argparse.BooleanOptionalAction, default=None,
+                   help="region energy, a sphere without --m1/--m2: after 9 x 9, try 13 x 13 and "
+                        "17 x 17, each kept while it lowers the energy by more than 1 %% and "
+                        "keeps the enclosed volume within 10 %% (finer detail, not a leak; off "
+                        "by default: it can still refine a surface that already leaked)")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
     _position(m, "--seed-point", "keep only the detected surface nearest this voxel")
     m.add_argument("--max-iter", type=int, default=None, help="iteration cap per stage (default 300)")
