@@ -66,12 +66,13 @@ class RegionParams:
     #: Two-class stages, each reading the outside afresh beyond the previous one's surface (a
     #: surface inside the step reads part of the object as outside, which pulls it inwards).
     two_class_rounds: int = 3
-    #: Coarse to fine (``coarse_to_fine: true``, ``--coarse-to-fine``; off by default, see
+    #: Coarse to fine (``coarse_to_fine``, on by default; ``--no-coarse-to-fine``; see
     #: docs/benchmarks.md, "Coarse to fine with a volume test": it raises the perfect-edge Dice
-    #: of five of the six sphere structures and the brain's from every click, but lowers three
-    #: leaked deep-structure results from perturbed clicks by 0.006-0.014): after the two-class rounds on
-    #: the 9 x 9 grid (a sphere whose M1, M2 are not given), the last round again on these finer
-    #: grids (M1 = M2) in turn, each from the L2 projection of the surface before it ...
+    #: of five of the six sphere structures and the brain's from every click, and lowers three
+    #: deep-structure results that had leaked at 9 x 9 by 0.006-0.014): after the two-class
+    #: rounds on the 9 x 9 grid (a sphere whose M1, M2 are not given), the last round again on
+    #: these finer grids (M1 = M2) in turn, each from the L2 projection of the surface before
+    #: it ...
     finer_m: tuple[int, ...] = (13, 17)
     #: ... each kept while it lowers the image energy by more than this fraction of it (a finer
     #: grid always fits a little better; what it must buy is detail the coarser one smoothed

@@ -38,7 +38,7 @@ def test_defaults_are_the_documented_ones():
     c = SegmentConfig()
     assert (c.shape, c.feature, c.threshold, c.max_iter, c.tol) == ("sphere", "edge", "auto", 300, 1e-6)
     assert (c.coarse_to_fine, c.prior_weight, c.prior_space, c.nan, c.polarity, c.world) == (
-        False, 1.0, "affine", "refuse", "auto", False)
+        True, 1.0, "affine", "refuse", "auto", False)
     assert c.m1 is c.m2 is c.scale is c.center is c.volume is None
     assert c.mesh is None  # no extra surface file unless asked
     assert c.energy == "auto"  # pipeline.region_energy decides
@@ -193,8 +193,9 @@ def test_coarse_to_fine_flag_overrides_the_file_both_ways(tmp_path):
     from segsnake.cli import build_parser
     from segsnake.commands.segment import config_from_args
 
-    on = tmp_path / "on.yaml"
+    on, off = tmp_path / "on.yaml", tmp_path / "off.yaml"
     on.write_text("coarse_to_fine: true\n")
+    off.write_text("coarse_to_fine: false\n")
 
     def parse(*flags):
         return config_from_args(build_parser().parse_args(["segment", "a.nii", "--out", "o",
@@ -202,5 +203,7 @@ def test_coarse_to_fine_flag_overrides_the_file_both_ways(tmp_path):
 
     assert parse("--config", str(on)).coarse_to_fine
     assert not parse("--config", str(on), "--no-coarse-to-fine").coarse_to_fine
-    assert parse("--coarse-to-fine").coarse_to_fine
-    assert not parse().coarse_to_fine
+    assert parse("--config", str(off), "--coarse-to-fine").coarse_to_fine
+    assert not parse("--config", str(off)).coarse_to_fine
+    assert not parse("--no-coarse-to-fine").coarse_to_fine
+    assert parse().coarse_to_fine
