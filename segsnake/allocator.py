@@ -15,7 +15,7 @@ from __future__ import annotations
 import ctypes
 import sys
 
-__all__ = ["MMAP_THRESHOLD_BYTES", "return_freed_memory"]
+__all__ = ["MMAP_THRESHOLD_BYTES", "return_freed_memory", "trim"]
 
 #: Blocks of at least this size are mapped from the OS on their own and unmapped when freed:
 #: every float32 volume of 181 x 217 x 181 voxels or more (27 MiB); smaller blocks (masks,
@@ -44,3 +44,19 @@ def return_freed_memory(threshold: int = MMAP_THRESHOLD_BYTES) -> bool:
     # plane-sized temporary reused after it (measured: 0.9 million faults more on a brain).
     return bool(mallopt(_M_MMAP_THRESHOLD, int(threshold))) and \
         bool(mallopt(_M_TRIM_THRESHOLD, 2 * int(threshold)))
+
+
+def trim() -> bool:
+    """Give the heap's free pages back to the OS (glibc's ``malloc_trim(0)``), for instance
+    between a segmentation and the writing of its outputs, whose libraries (matplotlib, VTK)
+    load on top of what the segmentation's temporaries left free in the heap. True when
+    something was released (False elsewhere than glibc)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return False
+    malloc_trim.argtypes = (ctypes.c_size_t,)
+    malloc_trim.restype = ctypes.c_int
+    return bool(malloc_trim(0))

@@ -27,6 +27,7 @@ from typing import Any, Callable
 import numpy as np
 
 from segsnake import __version__, outdir
+from segsnake.allocator import trim
 from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
 from segsnake.centerline_files import read_centerline, resolve_centerline
 from segsnake.markups import resolve_markups
@@ -367,6 +368,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     }
     if profile is not None:
         snake["profile"] = profile.to_dict()
+    # (the writers' libraries load into the pages the segmentation's temporaries left free)
+    trim()
     _write_outputs(out_dir, volume, result.mask, result.model, snake, overwrite, names,
                    init_model=result.init_model, mesh=config.mesh, truth=truth,
                    click=click_index(config, volume), profile=profile)
