@@ -197,8 +197,7 @@ def max_diameter(model: SplineSurface, samples: int = 8) -> float:
     ``(u, v)`` with the exact gradient; planar cylinder caps never hold the farthest point
     alone (a farthest point of a convex cap lies on its rim).
     """
-    import scipy.optimize as opt  # (imported here: the segment command does not need it)
-
+    import scipy.optimize as opt  # (here: the segment command does not need its import)
     from scipy.spatial import ConvexHull
 
     nu, nv = samples * model.m1, samples * model.m2

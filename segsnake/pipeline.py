@@ -498,7 +498,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             run.timings["edge_map_s"] += sum(spent)
             run.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
             # (a surface that comes near a face of the window leaves the stage at once: its
-            # further course is the window's, not the image's, and is run again anyway)
+            # further course would be the window's, not the image's)
             model = window.model_out(run.region(
                 window.model_in(start), lookup, name, tol, stationary, resume,
                 leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm), used=used))
