@@ -308,6 +308,7 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     extra = None
     if config.prior is not None and config.prior_weight > 0:
         extra = _prior_energy(config)
+        config = _sized_like_prior(config)
     try:
         result = segment_volume(volume.data, volume.spacing, config,
                                 index_from_world=volume.world_to_index, progress=progress,
@@ -530,6 +531,18 @@ def _bytes_per_voxel(config) -> float:
     from segsnake.pipeline import region_energy
 
     return REGION_BYTES_PER_VOXEL if region_energy(config) else PIPELINE_BYTES_PER_VOXEL
+
+
+def _sized_like_prior(config):
+    """A snake given neither ``m1`` nor ``m2`` takes its prior's size: the prior is defined on
+    that spline space (so coarse to fine, which would leave it, does not run). The prior file
+    was read and checked by :func:`_prior_energy`."""
+    if config.m1 is not None or config.m2 is not None:
+        return config
+    from segsnake.surfaces import load_model
+
+    reference = load_model(config.prior)
+    return config.replace(m1=reference.m1, m2=reference.m2)
 
 
 def _prior_energy(config):

@@ -682,3 +682,23 @@ def test_a_result_that_overlaps_its_outside_is_warned_about():
     refused.history[-1]["kept"] = True
     (text,) = result_warnings(refused)
     assert text.startswith("stage 2 (grid 13x13) ended with a quadrature")
+
+
+def test_a_prior_gives_the_snake_its_size(ball, tmp_path):
+    # A 13 x 13 prior (a shape model of results that coarse to fine refined) and no --m1/--m2:
+    # the snake is 13 x 13 from the start (a prior is defined on one spline space), where the
+    # default 9 x 9 used to be refused as a mismatch; a given size must still match.
+    from segsnake.surfaces import SphereModel
+
+    ph, image, _ = ball
+    prior = tmp_path / "prior.json"
+    SphereModel.ellipsoid(ph.init["center"], ph.init["radii"], m1=13, m2=13).save(prior)
+    out = tmp_path / "seg"
+    rc = main(["segment", str(image), "--out", str(out), "--quiet", *init_args(ph),
+               "--prior", str(prior), "--prior-weight", "0.3"])
+    assert rc == 0
+    model = json.loads((out / "snake.json").read_text())["model"]
+    assert (model["m1"], model["m2"]) == (13, 13)
+    rc = main(["segment", str(image), "--out", str(tmp_path / "nine"), "--quiet",
+               *init_args(ph), "--prior", str(prior), "--m1", "9", "--m2", "9"])
+    assert rc == 3
