@@ -307,8 +307,9 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
 
     extra = None
     if config.prior is not None and config.prior_weight > 0:
-        extra = _prior_energy(config)
-        config = _sized_like_prior(config)
+        reference = _read_prior(config.prior)
+        extra = _prior_energy(config, reference)
+        config = _sized_like_prior(config, reference)
     try:
         result = segment_volume(volume.data, volume.spacing, config,
                                 index_from_world=volume.world_to_index, progress=progress,
@@ -495,8 +496,7 @@ def result_warnings(result) -> list[str]:
     """What a segmentation's own record says may be wrong with it: a stage whose quadrature was
     not resolved (not one that left its window, nor a finer grid that coarse to fine refused:
     neither surface is the result), and (the region energy) an inside and outside that overlap
-    in intensity
-    (:func:`segsnake.region.class_separation` below the region parameters'
+    in intensity (:func:`segsnake.region.class_separation` below the region parameters'
     ``min_class_separation``)."""
     out = [f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
            f"its order (iteration or round cap reached): the surface may be less accurate"
@@ -533,38 +533,43 @@ def _bytes_per_voxel(config) -> float:
     return REGION_BYTES_PER_VOXEL if region_energy(config) else PIPELINE_BYTES_PER_VOXEL
 
 
-def _sized_like_prior(config):
-    """A snake given neither ``m1`` nor ``m2`` takes its prior's size: the prior is defined on
-    that spline space (so coarse to fine, which would leave it, does not run). The prior file
-    was read and checked by :func:`_prior_energy`."""
+def _sized_like_prior(config, reference):
+    """A snake given neither ``m1`` nor ``m2`` takes the size of its prior ``reference``: the
+    prior is defined on that spline space (so coarse to fine, which would leave it, does not
+    run); :func:`_prior_energy` checked the rest."""
     if config.m1 is not None or config.m2 is not None:
         return config
-    from segsnake.surfaces import load_model
-
-    reference = load_model(config.prior)
     return config.replace(m1=reference.m1, m2=reference.m2)
 
 
-def _prior_energy(config):
+def _read_prior(path: str):
+    """The reference model of a ``--prior`` file (exit 3 when it cannot be read)."""
+    from segsnake.surfaces import load_model
+
+    try:
+        return load_model(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such prior file") from None
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"{path}: not a readable segsnake model ({msg})") from None
+
+
+def _prior_energy(config, reference=None):
     """The ``--prior`` energy for :func:`segment_volume`'s ``extra_energy`` (a factory per stage).
 
     REF is any saved model: ``segsnake shape`` output, a previous ``snake.json`` or a
     ``segsnake shape-model`` MODEL.json (its reference is stored under ``model``). The weight is
     relative (:func:`segsnake.priors.relative_prior_weight`): an RMS deviation from the
     reference's shape space of 10 % of the snake's radius costs ``--prior-weight`` times the
-    image energy.
+    image energy. ``reference``: the prior file's model, when the caller has read it
+    (:func:`_read_prior`).
     """
     from segsnake.priors import relative_prior_weight
-    from segsnake.surfaces import load_model
 
     path = config.prior
-    try:
-        reference = load_model(path)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such prior file") from None
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"{path}: not a readable segsnake model ({msg})") from None
+    if reference is None:
+        reference = _read_prior(path)
 
     def mismatch(kind, m1, m2) -> InputError:
         sizes = ", ".join(f"{n}={v}" for n, v in (("M1", m1), ("M2", m2)) if v is not None)

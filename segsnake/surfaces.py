@@ -29,7 +29,7 @@ import math
 import os
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -332,13 +332,13 @@ class SplineSurface:
         return pv.PolyData(np.ascontiguousarray(points), faces)
 
     @staticmethod
-    def _grid_faces(nu: int, rows: int, offset: int = 0, extra: int = 0) -> NDArray:
+    def _grid_faces(nu: int, rows: int, offset: int = 0, tail: Sequence[NDArray] = ()) -> NDArray:
         """Quads of a u-periodic vertex grid (rows of nu vertices), split into outward triangles.
 
         Vertex (i, j) (u index i, row j) has id offset + j * nu + i. With u increasing along i
         and v along j, the outward normal is sigma_v x sigma_u, so (i, j), (i, j+1), (i+1, j)
-        is counter-clockwise seen from outside. ``extra`` rows are left (uninitialized) at the
-        end for the caller's other faces (no second copy of the mesh to append them).
+        is counter-clockwise seen from outside. The faces of ``tail`` (the caps) follow them in
+        the same array (appended, the mesh would be copied once more).
         """
         i = np.arange(nu)
         ip = (i + 1) % nu
@@ -346,8 +346,11 @@ class SplineSurface:
         a, b = row + i, row + ip  # (c = b + nu, d = a + nu)
         # per row: its nu triangles (a, d, b), then its nu triangles (b, d, c); written in
         # place (stacked, the pieces held 3 x the result: 110 MB for a 17 x 17 brain's mask mesh)
-        faces = np.empty((2 * nu * len(row) + extra, 3), dtype=np.int64)
-        out = faces[:2 * nu * len(row)].reshape(len(row), 2, nu, 3)
+        grid = 2 * nu * len(row)
+        faces = np.empty((grid + sum(map(len, tail)), 3), dtype=np.int64)
+        if len(tail):
+            faces[grid:] = np.concatenate(tail)
+        out = faces[:grid].reshape(len(row), 2, nu, 3)
         out[:, 0, :, 0] = a
         out[:, 0, :, 1] = a + nu
         out[:, 0, :, 2] = b
@@ -565,9 +568,7 @@ class SphereModel(SplineSurface):
         pts[:n_ring].reshape(nv - 1, nu, 3)[...] = np.transpose(self.positions(u, v), (1, 0, 2))
         pts[n_ring], pts[n_ring + 1] = self.pole("cN"), self.pole("cS")
         caps = self._cap_faces(nu, n_ring, 0, n_ring + 1, (nv - 2) * nu)
-        tris = self._grid_faces(nu, nv - 1, extra=sum(map(len, caps)))
-        tris[len(tris) - sum(map(len, caps)):] = np.concatenate(caps)
-        return self._outward(pts, tris)
+        return self._outward(pts, self._grid_faces(nu, nv - 1, tail=caps))
 
 
 def _ring_tangents(ring: NDArray, m2: int) -> tuple[NDArray, NDArray]:
@@ -789,11 +790,9 @@ class CylinderModel(SplineSurface):
         pts = np.empty((n0 + 2 * caps, 3))
         pts[:n0].reshape(nv + 1, nu, 3)[...] = np.transpose(self.positions(u, v), (1, 0, 2))
         ends = self._cap_faces(nu, n0, 0, n0 + 1, nv * nu) if caps else []
-        tris = self._grid_faces(nu, nv + 1, extra=sum(map(len, ends)))
         if caps:
             pts[n0], pts[n0 + 1] = pts[:nu].mean(axis=0), pts[nv * nu:n0].mean(axis=0)
-            tris[len(tris) - sum(map(len, ends)):] = np.concatenate(ends)
-        return self._outward(pts, tris)
+        return self._outward(pts, self._grid_faces(nu, nv + 1, tail=ends))
 
 
 #: Bounds of the axial control-interval count M2 chosen from a tube's length

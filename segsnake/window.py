@@ -29,7 +29,7 @@ def surface_box(model: SplineSurface, per_interval: int = 4) -> tuple[NDArray, N
     interval in u and v (ends and poles included)."""
     u = np.arange(per_interval * model.m1) / (per_interval * model.m1)
     v = np.linspace(0.0, 1.0, per_interval * model.m2 + 1)
-    pts = model.evaluate(u, v)[0].reshape(-1, 3)
+    pts = model.positions(u, v).reshape(-1, 3)  # (every iteration of a region stage)
     return pts.min(axis=0), pts.max(axis=0)
 
 
