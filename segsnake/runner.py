@@ -34,7 +34,7 @@ from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
 from segsnake.qc import click_index, write_qc_picture
 from segsnake.saved_snake import image_from_world, load_snake, load_snake_and_record, \
-    world_from_image
+    read_model, world_from_image
 
 __all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes", "segment_file",
            "render_file", "result_warnings"]
@@ -307,7 +307,7 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
 
     extra = None
     if config.prior is not None and config.prior_weight > 0:
-        reference = _read_prior(config.prior)
+        reference = read_model(config.prior, "prior file")
         extra = _prior_energy(config, reference)
         config = _sized_like_prior(config, reference)
     try:
@@ -542,19 +542,6 @@ def _sized_like_prior(config, reference):
     return config.replace(m1=reference.m1, m2=reference.m2)
 
 
-def _read_prior(path: str):
-    """The reference model of a ``--prior`` file (exit 3 when it cannot be read)."""
-    from segsnake.surfaces import load_model
-
-    try:
-        return load_model(path)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such prior file") from None
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"{path}: not a readable segsnake model ({msg})") from None
-
-
 def _prior_energy(config, reference=None):
     """The ``--prior`` energy for :func:`segment_volume`'s ``extra_energy`` (a factory per stage).
 
@@ -563,13 +550,13 @@ def _prior_energy(config, reference=None):
     relative (:func:`segsnake.priors.relative_prior_weight`): an RMS deviation from the
     reference's shape space of 10 % of the snake's radius costs ``--prior-weight`` times the
     image energy. ``reference``: the prior file's model, when the caller has read it
-    (:func:`_read_prior`).
+    (:func:`segsnake.saved_snake.read_model`).
     """
     from segsnake.priors import relative_prior_weight
 
     path = config.prior
     if reference is None:
-        reference = _read_prior(path)
+        reference = read_model(path, "prior file")
 
     def mismatch(kind, m1, m2) -> InputError:
         sizes = ", ".join(f"{n}={v}" for n, v in (("M1", m1), ("M2", m2)) if v is not None)

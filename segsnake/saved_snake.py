@@ -41,7 +41,8 @@ from segsnake.io import _LPS_TO_RAS
 from segsnake.markups import document_points, read_json
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, model_from_dict
 
-__all__ = ["MARKUPS_SCHEMA", "TAG", "load_snake", "load_snake_and_record", "snake_markups",
+__all__ = ["MARKUPS_SCHEMA", "TAG", "load_snake", "load_snake_and_record", "read_model",
+           "snake_markups",
            "world_from_image", "image_from_world"]
 
 MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/"
@@ -211,6 +212,20 @@ def _model_from_markups(doc: Any, path: str) -> SplineSurface:
 
 
 # ------------------------------------------------------------------------------ files
+def read_model(path: str, what: str = "file") -> SplineSurface:
+    """A saved model as it is stored (``snake.json``, a ``segsnake shape`` reference, a shape
+    model's mean), or InputError naming the file (``what`` names it when it is missing)."""
+    from segsnake.surfaces import load_model
+
+    try:
+        return load_model(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such {what}") from None
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"{path}: not a readable segsnake model ({msg})") from None
+
+
 def load_snake(path: str) -> SplineSurface:
     """A saved snake in world RAS mm, from ``snake.json`` or a markups file of ``export-points``
     (:func:`load_snake_and_record` without the record).

@@ -43,13 +43,13 @@ def flat_rows(record: dict, prefix: str = "") -> list[tuple[str, object]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from segsnake.commands.shape_model import load_snake
+    from segsnake.saved_snake import read_model
     from segsnake.errors import ConfigError
     from segsnake.measure import measure
 
     if args.csv and args.json:
         raise ConfigError("--csv and --json are exclusive")
-    model = load_snake(args.snake)
+    model = read_model(args.snake)
     record = {"snake": args.snake, **measure(model).to_dict()}
     if args.csv:
         if not args.quiet:

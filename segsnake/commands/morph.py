@@ -46,7 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
-    from segsnake.commands.shape_model import load_snake
+    from segsnake.saved_snake import read_model
     from segsnake.errors import ConfigError, InputError, OutputError
     from segsnake.measure import closed_area
     from segsnake.morph import morph
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.steps < 2:
         raise ConfigError(f"--steps must be at least 2 (the two inputs), got {args.steps}")
-    a, b = load_snake(args.a), load_snake(args.b)
+    a, b = read_model(args.a), read_model(args.b)
     if (a.kind, a.m1, a.m2) != (b.kind, b.m1, b.m2):
         raise InputError(f"{args.b}: a {b.kind} with M1={b.m1}, M2={b.m2}; {args.a} is a {a.kind} "
                          f"with M1={a.m1}, M2={a.m2} (the control points must correspond)")

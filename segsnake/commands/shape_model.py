@@ -11,7 +11,6 @@ in mm^2). See :mod:`segsnake.shapes`.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
@@ -38,27 +37,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return parser
 
 
-def load_snake(path: str):
-    """A saved model (``snake.json``, a reference, a shape model) or InputError naming the file."""
-    from segsnake.surfaces import load_model
-
-    try:
-        return load_model(path)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"{path}: not a readable segsnake model ({msg})") from None
-
-
 def run(args: argparse.Namespace) -> int:
     from segsnake.io import check_not_input
+    from segsnake.saved_snake import read_model
     from segsnake.shapes import build_shape_model
 
     if len(args.snakes) < 2:
         raise ConfigError(f"shape-model needs at least two snakes, got {len(args.snakes)}")
     check_not_input(args.out, *args.snakes)
-    models = [load_snake(p) for p in args.snakes]
+    models = [read_model(p) for p in args.snakes]
     first = models[0]
     for path, m in zip(args.snakes, models):
         if (m.kind, m.m1, m.m2) != (first.kind, first.m1, first.m2):
