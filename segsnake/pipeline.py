@@ -432,8 +432,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
        against a uniform outside: it fills what looks like the click and stops where the
        intensity leaves the click's band, a little inside a blurred step.
     3. *Two classes*: the outside's mean is read just outside that surface, averaged along it;
-       the same minimization with the inside's Gaussian against that local outside one puts the
-       surface at the midpoint intensity between the two, i.e. on the step (plus, with
+       the same minimization with the inside's Gaussian against that local outside one (on the
+       image as acquired: smoothing would move a curved step inwards) puts the surface at the
+       midpoint intensity between the two, i.e. on the step (plus, with
        ``edge_length_mm``, the flux of ``grad I`` over the step's peak gradient).
 
     ``on_boundary`` (a saved result): stage 2 is skipped, the snake is already on the step.
@@ -577,7 +578,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 shell = inside_and_shell(start, w_win)[1]
             sub = image_s[w_win.slices]
             mu_out = rg.local_outside_mean(sub, shell, sp, p.outside_smooth_mm)
-            rg.two_class_blend(sub, intensity, mu_out, out)
+            rg.two_class_blend(image[w_win.slices], sub, intensity, mu_out, out)
             del mu_out
             if p.edge_length_mm > 0:
                 out += rg.edge_density(image[w_win.slices], sp, polarity, contrast,
@@ -670,9 +671,8 @@ def _usable_restart(record, options: dict[str, Any], model: SplineSurface
 def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``), each started
     from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
-    it refines the surface: it lowers the image energy by more than ``p.finer_gain`` of it (a
-    finer grid always fits a little better; what it must buy is detail the coarser one smoothed
-    away), and the volume it encloses stays within ``p.finer_volume`` of the coarser surface's
+    it refines the surface: it lowers the image energy (where it fits just as well, the two
+    surfaces nearly agree, so the choice does not flip the result), and the volume it encloses stays within ``p.finer_volume`` of the coarser surface's
     (detail comes back as bulges and necks whose volumes nearly cancel; a leak into a
     neighbour or a fold through itself moves the whole volume). The first grid refused ends
     the schedule, as does a finer stage that fails (a collapse). Returns the surface and the
@@ -702,7 +702,7 @@ def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | No
         gain = (e - e_fine) / max(abs(e), 1e-300)
         volume = abs(model.volume(order=4))
         change = (finer.volume(order=4) - volume) / max(volume, 1e-300)
-        keep = bool(gain > p.finer_gain and abs(change) <= p.finer_volume)
+        keep = bool(gain > 0.0 and abs(change) <= p.finer_volume)
         run.history[-1].update(image_energy_gain=gain, volume_change=change, kept=keep)
         if not keep:
             run.last = last  # (the result's energy stays the coarser stage's)

@@ -48,8 +48,10 @@ class RegionParams:
     """The region energy's constants, each with its unit and meaning (docs/design.md; the
     sweeps that chose them are in docs/benchmarks.md)."""
 
-    #: Gaussian smoothing (standard deviation, mm) of the image the intensity model reads:
-    #: averages the noise over about a voxel of a 1 mm scan, finer than the structures asked for.
+    #: Gaussian smoothing (standard deviation, mm) of the image the intensity model, the
+    #: click's band, the outside's mean and the class statistics read: averages the noise over
+    #: about a voxel of a 1 mm scan, finer than the structures asked for. (The two-class term,
+    #: which places the surface, reads the image as acquired: :func:`two_class_density`.)
     smooth_mm: float = 1.0
     #: Smoothing (mm) of the image whose Laplacian the edge term integrates.
     edge_smooth_mm: float = 1.5
@@ -74,12 +76,10 @@ class RegionParams:
     #: these finer grids (M1 = M2) in turn, each from the L2 projection of the surface before
     #: it ...
     finer_m: tuple[int, ...] = (13, 17)
-    #: ... each kept while it lowers the image energy by more than this fraction of it (a finer
-    #: grid always fits a little better; what it must buy is detail the coarser one smoothed
-    #: away) ...
-    finer_gain: float = 0.01
-    #: ... and while it *refines* the surface rather than moving it: the volume it encloses stays
-    #: within this fraction of the coarser grid's (dimensionless, |V_fine - V_coarse| / V_coarse).
+    #: ... each kept while it lowers the image energy (where it fits no better it buys nothing,
+    #: and where it fits just as well the two surfaces nearly agree: the choice does not flip
+    #: the result; a threshold of 1 % did, session 10) and *refines* the surface rather than
+    #: moving it: the volume it encloses stays within this fraction of the coarser grid's (dimensionless, |V_fine - V_coarse| / V_coarse).
     #: Detail that a coarser grid smoothed over comes back as bulges and as the necks between
     #: them, which nearly cancel in volume; a finer grid that leaks through a gap into a
     #: neighbour of the same intensity, or folds through itself, changes the volume by as much
@@ -256,14 +256,21 @@ def local_outside_mean(image_s: NDArray, shell: NDArray, spacing: Sequence[float
     return total
 
 
-def two_class_density(image_s: NDArray, model: IntensityModel, outside_mean: NDArray) -> NDArray:
+def two_class_density(image: NDArray, model: IntensityModel, outside_mean: NDArray) -> NDArray:
     """``tanh(llr / 2)`` of the inside's Gaussian against a local outside one of the same spread
     centred on ``outside_mean``: ``llr = ((I - mu)^2 - (I - mu_out)^2) / (2 sigma^2)``, zero at
     the midpoint between the two means, which on a step blurred symmetrically is the step
-    (float32)."""
-    out = _output(image_s, None)
-    for i in range(image_s.shape[0]):  # plane by plane: no float64 copy of the volume
-        out[i] = _two_class_plane(image_s[i], outside_mean[i], model)
+    (float32).
+
+    ``image`` is the image as acquired, not smoothed: ``llr`` is linear in ``I`` and the density
+    odd about the midpoint, so under noise symmetric about the signal its expectation is still
+    zero exactly where the signal crosses the midpoint, and the volume integral averages the
+    noise. Smoothing would move that crossing on a curved boundary: inwards by about
+    ``s^2 (k1 + k2) / 2`` for a Gaussian of ``s``, ``s^2 / R`` on a sphere of radius ``R``
+    (0.36 mm on a 3 mm ball at ``s`` = 1 mm, docs/design.md)."""
+    out = _output(image, None)
+    for i in range(image.shape[0]):  # plane by plane: no float64 copy of the volume
+        out[i] = _two_class_plane(image[i], outside_mean[i], model)
     return out
 
 
@@ -289,14 +296,18 @@ def blend(two_class: NDArray, click: NDArray, outside_mean: NDArray,
     return a * two_class + (1 - a) * click
 
 
-def two_class_blend(image_s: NDArray, model: IntensityModel, outside_mean: NDArray,
-                    out: NDArray | None = None) -> NDArray:
-    """:func:`blend` of :func:`two_class_density` and :func:`region_density`, plane by plane
-    (float32; into ``out`` if given): the density of the two-class stages without their three
-    full-size arrays (issue 18)."""
+def two_class_blend(image: NDArray, image_s: NDArray, model: IntensityModel,
+                    outside_mean: NDArray, out: NDArray | None = None) -> NDArray:
+    """:func:`blend` of :func:`two_class_density` (of ``image``, as acquired) and
+    :func:`region_density` (of ``image_s``, smoothed: its ``z^2`` is not linear in the
+    intensity, and noise would raise it everywhere), plane by plane (float32; into ``out`` if
+    given): the density of the two-class stages without their three full-size arrays
+    (issue 18)."""
+    if image.shape != image_s.shape:
+        raise ValueError(f"image has shape {image.shape}, the smoothed image {image_s.shape}")
     out = _output(image_s, out)
     for i in range(image_s.shape[0]):
-        out[i] = blend(_two_class_plane(image_s[i], outside_mean[i], model),
+        out[i] = blend(_two_class_plane(image[i], outside_mean[i], model),
                        _click_plane(image_s[i], model), outside_mean[i], model)
     return out
 

@@ -140,7 +140,8 @@ def test_segment_end_to_end(ball, tmp_path, capsys):
     from segsnake.surfaces import load_model
 
     model = load_model(out / "snake.json")
-    assert model.kind == "sphere" and (model.m1, model.m2) == (9, 9)
+    # (coarse to fine: 13 x 13 and 17 x 17 each lowered the energy, the volume within 10 %)
+    assert model.kind == "sphere" and (model.m1, model.m2) == (17, 17)
     assert model.volume() == pytest.approx(summary["volume_mm3"], rel=1e-9)
     # ... and so is its area: exact, above the isoperimetric bound, near the mask's surface
     from segsnake.measure import closed_area
@@ -199,9 +200,10 @@ def test_surface_and_world_init_on_rotated_anisotropic_grid(tmp_path, capsys):
 
     # surface.vtp: moderate sampling (to_mesh default), small, closed, in world coordinates
     path = tmp_path / "vox" / "surface.vtp"
-    assert path.stat().st_size < 250_000
+    m1, m2 = vox["model"]["m1"], vox["model"]["m2"]  # (the grid coarse to fine kept)
     mesh = pv.read(path)
-    assert mesh.n_points == 8 * 9 * (8 * 9 - 1) + 2 and mesh.is_manifold
+    assert mesh.n_points == 8 * m1 * (8 * m2 - 1) + 2 and mesh.is_manifold
+    assert path.stat().st_size < 50 * mesh.n_points  # binary and compressed
     ijk = np.linalg.solve(affine[:3, :3], (np.asarray(mesh.points, float) - affine[:3, 3]).T)
     # signed distance (mm) to the mask boundary, sampled at the mapped-back points
     inside = mv.astype(bool)

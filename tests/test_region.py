@@ -139,29 +139,30 @@ def test_region_stages_with_the_edge_term():
     assert res.settings["region_params"]["edge_length_mm"] == 2.0
 
 
-def test_coarse_to_fine_keeps_a_finer_grid_only_when_it_pays():
+def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
     ph = make_phantom("blob", seed=0, noise=0.2)
+    truth = ph.truth.astype(bool)
+    coarse = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(
+        {**ph.init, "coarse_to_fine": False}))
+    assert coarse.model.m1 == coarse.model.m2 == 9
     config = SegmentConfig.from_mapping({**ph.init, "coarse_to_fine": True})
-    # measured on this lobed blob: 13 x 13 lowers the image energy by 1.2 %, 17 x 17 by 0.1 %
-    dear = segment_volume(ph.image, ph.spacing, config,
-                          region_params=RegionParams(finer_gain=0.05))
-    grids = [h for h in dear.history if h["stage"].startswith("grid")]
-    assert [h["stage"] for h in grids] == ["grid 13x13"] and not grids[0]["kept"]
-    assert 0.005 < grids[0]["image_energy_gain"] < 0.05 and dear.model.m1 == 9
-    cheap = segment_volume(ph.image, ph.spacing, config,
-                           region_params=RegionParams(finer_gain=1e-4))
-    assert cheap.model.m1 == cheap.model.m2 == 17
-    assert dice(cheap.mask, ph.truth.astype(bool)) >= dice(dear.mask, ph.truth.astype(bool)) - 0.002
+    fine = segment_volume(ph.image, ph.spacing, config)
+    grids = [h for h in fine.history if h["stage"].startswith("grid")]
+    assert [h["stage"] for h in grids] == ["grid 13x13", "grid 17x17"]
+    assert all(h["kept"] and h["image_energy_gain"] > 0 for h in grids)
+    assert fine.model.m1 == fine.model.m2 == 17
+    # measured: the lobes the 9 x 9 grid smooths away come back, 0.974 -> 0.985
+    assert dice(fine.mask, truth) >= dice(coarse.mask, truth) + 0.005
     # A refinement: the lobes come back with the enclosed volume within a few per cent.
-    changes = [h["volume_change"] for h in cheap.history if h["stage"].startswith("grid")]
-    assert len(changes) == 2 and max(map(abs, changes)) < 0.05
+    changes = [h["volume_change"] for h in grids]
+    assert max(map(abs, changes)) < 0.05
     # The volume test refuses a grid that moves more volume than finer_volume allows, and the
     # result is then the coarser surface exactly.
     tight = segment_volume(ph.image, ph.spacing, config, region_params=RegionParams(
-        finer_gain=1e-4, finer_volume=0.5 * abs(changes[0])))
+        finer_volume=0.5 * abs(changes[0])))
     grids = [h for h in tight.history if h["stage"].startswith("grid")]
     assert [h["kept"] for h in grids] == [False] and tight.model.m1 == 9
-    assert np.array_equal(tight.mask, dear.mask) and tight.energy == dear.energy
+    assert np.array_equal(tight.mask, coarse.mask) and tight.energy == coarse.energy
 
 
 def test_boundary_fraction_is_the_share_of_the_surface_on_a_step():
@@ -196,13 +197,29 @@ def test_the_two_class_stage_density_is_the_blend_of_its_parts_in_one_array():
     m = IntensityModel(mu=100.0, sigma=10.0, range=400.0)
     image = rng.uniform(40, 160, (6, 7, 8)).astype(np.float32)
     outside = rng.uniform(60, 140, (6, 7, 8)).astype(np.float32)
-    parts = blend(two_class_density(image, m, outside), region_density(image, m), outside, m)
+    smoothed = rng.uniform(40, 160, (6, 7, 8)).astype(np.float32)
+    # (the two classes of the image as acquired, the click's band of the smoothed one)
+    parts = blend(two_class_density(image, m, outside), region_density(smoothed, m), outside, m)
     padded = np.full((10, 11, 12), 1.0, np.float32)
-    got = two_class_blend(image, m, outside, padded[2:-2, 2:-2, 2:-2])
+    got = two_class_blend(image, smoothed, m, outside, padded[2:-2, 2:-2, 2:-2])
     assert np.allclose(got, parts, atol=1e-6) and np.allclose(padded[2:-2, 2:-2, 2:-2], parts,
                                                                 atol=1e-6)
     assert padded[:2].min() == 1.0 and padded[:, :, -2:].min() == 1.0
     assert np.array_equal(region_density(image, m, padded[2:-2, 2:-2, 2:-2]),
                           region_density(image, m))
     with pytest.raises(ValueError, match="shape"):
-        two_class_blend(image, m, outside, padded)
+        two_class_blend(image, smoothed, m, outside, padded)
+    with pytest.raises(ValueError, match="shape"):
+        two_class_blend(image, smoothed[1:], m, outside)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_small_ball_is_segmented_at_its_size(seed):
+    # The two classes read the image as acquired: smoothed by 1 mm, the half-maximum of a ball
+    # of radius 4 mm lies 0.25 mm inside it, and its volume came out 75-78 % of the truth's.
+    r = 4.0
+    ph = make_phantom("ball", seed=seed, noise=0.2, radius=r, shape=(24, 24, 24))
+    config = SegmentConfig.from_mapping({**ph.init, "radii": [0.7 * r] * 3})
+    res = segment_volume(ph.image, ph.spacing, config)
+    assert res.model.volume() / (4 / 3 * np.pi * r ** 3) == pytest.approx(1.0, abs=0.05)
+    assert dice(res.mask, ph.truth.astype(bool)) > 0.92  # measured 0.935-0.944 (0.87-0.89)

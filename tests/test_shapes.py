@@ -248,15 +248,41 @@ def test_shape_model_command_and_its_use_as_a_prior(tmp_path, capsys):
     assert energy.value_and_grad(shapes[1].params)[0] > 1e-3
 
 
+def test_shape_model_command_resamples_other_sizes(tmp_path, capsys):
+    # Coarse to fine ends results on 9 x 9, 13 x 13 or 17 x 17: one model of them all, at the
+    # largest size, each resampled snake its L2 projection there.
+    from segsnake.resample import resample
+
+    rng = np.random.default_rng(3)
+    big = [SphereModel.unit(13, 11).transformed(*_random_affine(rng, 0.2)) for _ in range(2)]
+    small = _bumpy(BASES[0], 1, 0.3)  # 8 x 7, bumps no 13 x 11 spline holds exactly
+    paths = _write_snakes(tmp_path, [small, *big])
+    out = tmp_path / "model.json"
+    assert main(["shape-model", *paths, "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary["m1"], summary["m2"], summary["n_shapes"]) == (13, 11, 3)
+    assert summary["resampled"] == [paths[0]]
+    # the largest move of its surface points, on a finer grid than the command's
+    u, v = np.linspace(0, 1, 400), np.linspace(0, 1, 300)
+    move = np.linalg.norm(resample(small, 13, 11).evaluate(u, v)[0] - small.evaluate(u, v)[0],
+                          axis=-1).max()
+    assert summary["resampled_max_move_mm"] == pytest.approx(move, rel=0.05)
+    assert 0.01 < move < 0.1 * np.ptp(small.control_points().reshape(-1, 3), axis=0).min()
+    # (an ellipsoid needs no resampling: every M holds it exactly, as the sphere's basis does)
+    assert resample(big[0], 9, 9).volume() == pytest.approx(big[0].volume(), rel=1e-12)
+    direct = build_shape_model([resample(small, 13, 11), *big])
+    assert np.abs(load_shape_model(out).reference.params - direct.reference.params).max() < 1e-12
+
+
 def test_shape_model_command_refuses_mismatched_or_missing_snakes(tmp_path, capsys):
     shapes = _shapes_for_model(2)
     paths = _write_snakes(tmp_path, shapes)
     other = tmp_path / "other.json"
-    SphereModel.unit(9, 9).save(other)
+    CylinderModel.unit(8, 4).save(other)
     out = tmp_path / "model.json"
     assert main(["shape-model", *paths, str(other), "--out", str(out)]) == 3
     err = capsys.readouterr().err
-    assert "other.json: a sphere with M1=9, M2=9" in err and "all snakes must match" in err
+    assert "other.json: a cylinder" in err and "all snakes must be of one kind" in err
     assert main(["shape-model", paths[0], "--out", str(out)]) == 2
     assert "at least two" in capsys.readouterr().err
     assert main(["shape-model", paths[0], str(tmp_path / "nope.json"), "--out", str(out)]) == 3
