@@ -672,9 +672,10 @@ def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | No
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``), each started
     from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
     it refines the surface: it lowers the image energy (where it fits just as well, the two
-    surfaces nearly agree, so the choice does not flip the result), and the volume it encloses stays within ``p.finer_volume`` of the coarser surface's
-    (detail comes back as bulges and necks whose volumes nearly cancel; a leak into a
-    neighbour or a fold through itself moves the whole volume). The first grid refused ends
+    surfaces nearly agree, so the choice does not flip the result), and the volume it encloses
+    stays within ``p.finer_volume`` of the coarser surface's (detail comes back as bulges and
+    necks whose volumes nearly cancel; a leak into a neighbour or a fold through itself moves
+    the whole volume). The first grid refused ends
     the schedule, as does a finer stage that fails (a collapse). Returns the surface and the
     ``run.last`` of the finer stage kept (None if none)."""
     from segsnake.resample import resample

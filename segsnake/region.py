@@ -79,7 +79,8 @@ class RegionParams:
     #: ... each kept while it lowers the image energy (where it fits no better it buys nothing,
     #: and where it fits just as well the two surfaces nearly agree: the choice does not flip
     #: the result; a threshold of 1 % did, session 10) and *refines* the surface rather than
-    #: moving it: the volume it encloses stays within this fraction of the coarser grid's (dimensionless, |V_fine - V_coarse| / V_coarse).
+    #: moving it: the volume it encloses stays within this fraction of the coarser grid's
+    #: (dimensionless, |V_fine - V_coarse| / V_coarse).
     #: Detail that a coarser grid smoothed over comes back as bulges and as the necks between
     #: them, which nearly cancel in volume; a finer grid that leaks through a gap into a
     #: neighbour of the same intensity, or folds through itself, changes the volume by as much
