@@ -675,9 +675,9 @@ def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | No
     surfaces nearly agree, so the choice does not flip the result), and the volume it encloses
     stays within ``p.finer_volume`` of the coarser surface's (detail comes back as bulges and
     necks whose volumes nearly cancel; a leak into a neighbour or a fold through itself moves
-    the whole volume). The first grid refused ends
-    the schedule, as does a finer stage that fails (a collapse). Returns the surface and the
-    ``run.last`` of the finer stage kept (None if none)."""
+    the whole volume). The first grid refused ends the schedule, as does a finer stage that
+    fails (a collapse). Returns the surface and the ``run.last`` of the finer stage kept (None
+    if none)."""
     from segsnake.resample import resample
 
     lookup, kept = run.lookup, None

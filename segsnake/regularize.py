@@ -61,7 +61,6 @@ def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> 
                          A.reshape(model.m1, model.m2 + 3, -1),
                          optimize=True).reshape(len(u) * len(v), -1)
 
-    sw = np.sqrt(W)
     hu, hv = 1.0 / model.m1, 1.0 / model.m2
     # The Gram matrix D^T D of the weighted second-derivative samples, one derivative at a time
     # (stacked, D held 3 x the nodes x P doubles: 31 MB for a 17 x 17 grid, twice over).
@@ -80,6 +79,7 @@ def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> 
         K = R.T @ G @ R + T.T @ T / (model.m1 * model.m2)
     else:
         S0 = sampling(0, 0)
+        sw = np.sqrt(W)
         ref = _reference(model)
         ref_samples = S0 @ ref.params  # (Nq, 3)
         X = np.column_stack([ref_samples, np.ones(len(ref_samples))])  # affine fit basis

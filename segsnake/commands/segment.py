@@ -90,7 +90,7 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                         "the edge-map stages (auto's choice for cylinders and --feature surface)")
     m.add_argument("--coarse-to-fine", action=argparse.BooleanOptionalAction, default=None,
                    help="region energy, a sphere without --m1/--m2: after 9 x 9, try 13 x 13 and "
-                        "17 x 17, each kept while it lowers the energy by more than 1 %% and "
+                        "17 x 17, each kept while it lowers the image energy and "
                         "keeps the enclosed volume within 10 %% (finer detail, not a leak; on "
                         "by default, --no-coarse-to-fine keeps 9 x 9)")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")

@@ -103,6 +103,6 @@ def _one_size(models: list) -> tuple[list, list[float | None]]:
             continue
         r = resample(m, m1, m2)
         out.append(r)
-        moved.append(float(np.linalg.norm(r.evaluate(u, v)[0] - m.evaluate(u, v)[0],
+        moved.append(float(np.linalg.norm(r.positions(u, v) - m.positions(u, v),
                                           axis=-1).max()))
     return out, moved
