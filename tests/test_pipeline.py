@@ -120,6 +120,16 @@ def test_a_region_stage_refuses_a_surface_that_crosses_itself():
     assert region(legs_moved(4))  # narrowed in places, apart
     assert not region(legs_moved(8))  # the legs pushed into each other
     assert _Admissible(start, np.array([1e9, 1e9]))(legs_moved(8))  # an edge stage's check
+    # A start that already crosses itself (a hand-edited snake, or a coarser grid's surface
+    # projected onto a finer grid) may not cross itself further: the legs pushed deeper into
+    # each other are refused, drawn apart accepted. (Before, such a start went untested: a
+    # finer grid's stage then collapsed through itself.)
+    crossed = start.with_params(legs_moved(8))
+    deeper = points.copy()
+    deeper[:, 0] += 12 * np.clip((13 - points[:, 0]) / 4, -1, 1) * (points[:, 2] < 36)
+    from_crossed = _Admissible(crossed, np.array([1e9, 1e9]), follow=True)
+    assert not from_crossed(deeper.reshape(start.params.shape))
+    assert from_crossed(legs_moved(4))
 
 
 def test_dark_object_on_bright_background_is_found_with_auto_polarity():
