@@ -16,9 +16,10 @@ Tools (settings in :data:`PEER_PARAMS`, the reasons in the README):
     the brain only: ``segsnake segment`` with no initialization at all.
 ``segsnake, perfect edges``
     the ceiling of model and optimizer: the same command on the reference mask itself as the
-    image, with the click; a sphere with its default options (the region energy chooses M), a
-    cylinder on each control grid of :data:`CEILING_M` (the full run; the best is reported
-    with its M).
+    image, with the click and its default options: the region energy chooses M (the issue's
+    ceiling is "with the M schedule choosing the resolution by itself"), and that run is
+    reported with its M. A cylinder also runs on the fixed control grids of :data:`CEILING_M`
+    (the full run), listed in the row's label for comparison.
 ``BET``, ``ROBEX``
     the brain only, whole-head tools that take no click: ``benchmarks/real/brain_tools.py``
     runs each in a virtual environment of its own, with its default settings.
@@ -89,8 +90,9 @@ TUNE_GRID: dict[str, dict[str, list]] = {
 #: The peers' region of interest: the reference's bounding box grown by this much (mm), as an
 #: ITK-SNAP user draws a box around the structure before running its snake.
 ROI_MARGIN_MM = 20.0
-#: Control grids (m1, m2) the perfect-edge ceiling tries (the first is segsnake's default).
-CEILING_M = {"sphere": [None], "cylinder": [(8, 4), (12, 6), (16, 8)]}
+#: Control grids (m1, m2) the perfect-edge ceiling runs; the first, segsnake's default (None:
+#: the M schedule chooses), is the one reported.
+CEILING_M = {"sphere": [None], "cylinder": [None, (8, 4), (12, 6), (16, 8)]}
 #: Seconds before a tool's process is stopped and its run recorded as failed.
 TIMEOUT_S = 1800.0
 METRICS = ("dice", "jaccard", "hausdorff95_mm", "assd_mm")
@@ -274,7 +276,7 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
             out["runs"].append(row)
             if keep and res.get("mask"):  # the whole output folder, for a later look
                 dest = os.path.join(keep, case["name"], f"{tool}-{label}".replace(" ", "_")
-                                    .replace(",", "") + (f"-m{extra['m'][0]}" if "m" in extra else ""))
+                                    .replace(",", "") + (f"-m{_grid(extra['m'])}" if "m" in extra else ""))
                 shutil.rmtree(dest, ignore_errors=True)
                 shutil.copytree(os.path.dirname(res["mask"]), dest)
             brief = f"{row['dice']:.3f}" if "dice" in row else f"failed ({row['error'][:60]})"
@@ -362,6 +364,11 @@ def _fmt(x: float | None, spec: str) -> str:
     return "-" if x is None else format(x, spec)
 
 
+def _grid(m: list[int]) -> str:
+    """A control grid as ``M1xM2`` (``?`` for a run that failed before it had one)."""
+    return "x".join(map(str, m)) or "?"
+
+
 def summarize(runs: list[dict]) -> dict:
     """Click row, Dice over the perturbed clicks (a failed run counts as 0) and their failures."""
     click = next((r for r in runs if r["start"] in ("click", "none")), runs[0])
@@ -382,10 +389,12 @@ def markdown(info: dict) -> str:
         for tool in tools:
             runs = [r for r in case["runs"] if r["tool"] == tool]
             if tool == CEILING:
-                best = max(runs, key=lambda r: r.get("dice", -1.0))
-                tried = ", ".join("{}x{}: {}".format(*r["m"], _fmt(r.get("dice"), ".3f")) for r in runs)
-                label = "{} (M {}x{}{})".format(tool, *best["m"], f"; {tried}" if len(runs) > 1 else "")
-                runs = [best]
+                default = runs[0]  # (the M schedule's choice: CEILING_M's first)
+                fixed = ", ".join(f"{_grid(r['m'])}: {_fmt(r.get('dice'), '.3f')}"
+                                  for r in runs[1:])
+                label = f"{tool} (M {_grid(default['m'])}" + \
+                    (f"; fixed grids {fixed})" if fixed else ")")
+                runs = [default]
             else:
                 label = tool
             s = summarize(runs)
