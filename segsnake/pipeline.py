@@ -1261,8 +1261,8 @@ class _Admissible:
     :data:`CROSSING_RTOL` of its volume, or by more than its start did when that was more (as
     a hand-edited snake, or a coarser grid's surface projected onto a finer one, may;
     :func:`segsnake.rasterize.crossing_volume`): a volume integral counts a region the surface
-    wraps twice twice and one it wraps inside out negatively, so a density that is positive outside
-    the object rewards a surface that passes one part through another, and step by step no
+    wraps twice twice and one it wraps inside out negatively, so a density that is positive
+    outside the object rewards a surface that passes one part through another, and step by step no
     normal need turn by 90 degrees (measured on the Colin27 thalamus before the test: a round
     shrank the surface from 68 000 to 7 000 mm^3 while its mask kept 34 000 voxels, half of it
     wrapped inside out, and the next went on to 3 mm^3: Dice 0.06; with the test 0.23. A start

@@ -124,11 +124,11 @@ def test_a_region_stage_refuses_a_surface_that_crosses_itself():
     # projected onto a finer grid) may not cross itself further: the legs pushed deeper into
     # each other are refused, drawn apart accepted. (Before, such a start went untested: a
     # finer grid's stage then collapsed through itself.)
-    crossed = start.with_params(legs_moved(8))
-    deeper = points.copy()
-    deeper[:, 0] += 12 * np.clip((13 - points[:, 0]) / 4, -1, 1) * (points[:, 2] < 36)
-    from_crossed = _Admissible(crossed, np.array([1e9, 1e9]), follow=True)
-    assert not from_crossed(deeper.reshape(start.params.shape))
+    # (crossing volume measured: 81 mm^3 at 8 mm, 435 mm^3 at 12 mm, 0 at 4 mm; 2 % of the
+    # volume is 47 mm^3)
+    from_crossed = _Admissible(start.with_params(legs_moved(8)), np.array([1e9, 1e9]),
+                               follow=True)
+    assert not from_crossed(legs_moved(12))
     assert from_crossed(legs_moved(4))
 
 
