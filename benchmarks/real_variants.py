@@ -7,8 +7,7 @@ measured sweep), and the "tried and not kept" numbers of docs/benchmarks.md.
         [--perfect-edges]
 
 For each case of the real-data benchmark (``make bench-real-data``), the benchmark's click and
-its ``--clicks`` perturbed clicks (``perturb_init`` seeds 1..n, as ``bench_real.py`` makes them)
-are segmented in this process (``segment_volume``) with the defaults changed by ``--param``
+its ``--clicks`` perturbed clicks (:func:`bench_real.clicks`) are segmented in this process (``segment_volume``) with the defaults changed by ``--param``
 (:class:`segsnake.region.RegionParams` fields) and ``--option`` (``segment`` options, as a
 config file names them); each value is a Python literal. Prints one row per case: the Dice of
 every start ("fail" for a run that found no boundary), the control grid where it is not the
@@ -20,24 +19,24 @@ from __future__ import annotations
 
 import argparse
 import ast
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+HERE = Path(__file__).resolve().parent
+for _p in (HERE / "real", HERE, HERE.parent):
+    sys.path.insert(0, str(_p))
 
+from bench_real import clicks  # noqa: E402
+from fetch import load_cases  # noqa: E402
 from segsnake.config import SegmentConfig  # noqa: E402
 from segsnake.errors import SegmentationError  # noqa: E402
 from segsnake.io import load_volume  # noqa: E402
 from segsnake.metrics import dice  # noqa: E402
-from segsnake.perturb import perturb_init  # noqa: E402
 from segsnake.pipeline import segment_volume  # noqa: E402
 from segsnake.region import RegionParams  # noqa: E402
-
-CASES = Path.home() / ".cache" / "segsnake" / "real" / "cases"
 
 
 def _pairs(items: list[str]) -> dict:
@@ -59,26 +58,24 @@ def main() -> None:
     ap.add_argument("--perfect-edges", action="store_true")
     args = ap.parse_args()
     params, options = RegionParams(**_pairs(args.param)), _pairs(args.option)
-    cases = [c for c in json.loads((CASES / "cases.json").read_text())
+    cases = [c for c in load_cases()
              if c["role"] == "benchmark" and (not args.cases or c["name"] in args.cases)]
     print(f"RegionParams changes: {_pairs(args.param)}; options: {options}"
           f"{'; perfect edges' if args.perfect_edges else ''}")
     images = {}
     for case in cases:
-        truth_volume = load_volume(str(CASES / case["truth"]))
+        truth_volume = load_volume(case["truth"])
         truth = np.asarray(truth_volume.data) > 0
         spacing = np.asarray(truth_volume.spacing, dtype=float)
         if args.perfect_edges:
             image = truth.astype(np.float32)
         else:
             if case["image"] not in images:
-                images[case["image"]] = np.asarray(load_volume(str(CASES / case["image"])).data,
+                images[case["image"]] = np.asarray(load_volume(case["image"]).data,
                                                    dtype=np.float32)
             image = images[case["image"]]
-        starts = [case["init"]] + [perturb_init(case["init"], spacing, seed=k)
-                                   for k in range(1, 0 if args.perfect_edges else args.clicks + 1)]
         cells, t0 = [], time.perf_counter()
-        for init in starts:
+        for _, init in clicks(case, 0 if args.perfect_edges else args.clicks):
             config = SegmentConfig.from_mapping({**init, **options})
             try:
                 res = segment_volume(image, spacing, config, region_params=params)
