@@ -421,7 +421,7 @@ class SegmentConfig:
     seed_point: list[float] | str | None = None
     max_iter: int = 300
     tol: float = 1e-6
-    coarse_to_fine: bool = True  # region energy, spheres: finer grids after the rounds (pipeline)
+    coarse_to_fine: bool = True  # region energy: finer grids after the rounds (pipeline)
     prior: str | None = None
     prior_weight: float = 1.0  # used only with a prior; 0 switches it off
     prior_space: str = "affine"

@@ -594,9 +594,9 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         if k == last:
             # The result's energy: its record (lookup from these, reference, order).
             final, round_start, final_window = run.last, start, window
-        # (a tube's rings follow its calibre instead: finer grids are for spheres)
-        if k == last and config.coarse_to_fine and model.kind == "sphere" \
-                and config.m1 is None and config.m2 is None:
+        # (a tube's rings along follow its calibre: its finer grids are finer around only)
+        if k == last and config.coarse_to_fine and config.m1 is None \
+                and (config.m2 is None or model.kind == "cylinder"):
             finer, kept = _finer_grids(run, window.model_in(model), p)
             model, final = window.model_out(finer), kept or final
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
@@ -669,7 +669,8 @@ def _usable_restart(record, options: dict[str, Any], model: SplineSurface
 
 
 def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
-    """Coarse to fine: the last stage again on finer control grids (``p.finer_m``), each started
+    """Coarse to fine: the last stage again on finer control grids (``p.finer_m``: M1 = M2 for a
+    sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started
     from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
     it refines the surface: it lowers the image energy (where it fits just as well, the two
     surfaces nearly agree, so the choice does not flip the result), and the volume it encloses
@@ -686,12 +687,14 @@ def _finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | No
         flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
         return flux.value_and_grad(m.params)[0]
 
+    tube = model.kind == "cylinder"
     for m in p.finer_m:
-        if m <= min(model.m1, model.m2):
+        if m <= (model.m1 if tube else min(model.m1, model.m2)):
             continue
-        last, name = run.last, f"grid {m}x{m}"
+        m2 = model.m2 if tube else m
+        last, name = run.last, f"grid {m}x{m2}"
         try:
-            finer = run.region(resample(model, m, m), lookup, name, stationary=True)
+            finer = run.region(resample(model, m, m2), lookup, name, stationary=True)
         except SegmentationError as exc:
             # (a finer surface that collapsed through itself is no refinement either)
             run.history.append({"stage": name, "kept": False, "error": str(exc)})

@@ -165,6 +165,33 @@ def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
     assert np.array_equal(tight.mask, coarse.mask) and tight.energy == coarse.energy
 
 
+def test_coarse_to_fine_refines_a_tube_around_and_keeps_its_rings():
+    # A straight tube through the volume whose section has five lobes (radius 9 mm +- 25 %):
+    # eight control points around hold an ellipse, not the lobes.
+    n, nz = 48, 40
+    x, y = np.meshgrid(np.arange(n) - 23.5, np.arange(n) - 23.5, indexing="ij")
+    section = np.hypot(x, y) < 9.0 * (1 + 0.25 * np.cos(5 * np.arctan2(y, x)))
+    truth = np.repeat(section[:, :, None], nz, axis=2)
+    rng = np.random.default_rng(0)
+    image = (np.where(truth, 100.0, 20.0) + rng.normal(0, 8, truth.shape)).astype(np.float32)
+    init = {"shape": "cylinder", "axis_start": [23.5, 23.5, 8], "axis_end": [23.5, 23.5, 31],
+            "radius": 4.0}
+    coarse = segment_volume(image, (1.0, 1.0, 1.0), SegmentConfig.from_mapping(
+        {**init, "coarse_to_fine": False}))
+    fine = segment_volume(image, (1.0, 1.0, 1.0), SegmentConfig.from_mapping(init))
+    m2 = coarse.model.m2  # the rings the calibre chose
+    grids = [h for h in fine.history if h["stage"].startswith("grid")]
+    assert [h["stage"] for h in grids] == [f"grid 13x{m2}", f"grid 17x{m2}"]
+    assert all(h["kept"] and abs(h["volume_change"]) < 0.1 for h in grids)
+    assert (coarse.model.m1, fine.model.m1, fine.model.m2) == (8, 17, m2)
+    # measured 0.838 -> 0.901: the lobes come back
+    assert dice(fine.mask, truth) >= dice(coarse.mask, truth) + 0.05
+    assert fine.settings["ends"] == ["field of view", "field of view"]
+    # Given M1, the tube keeps it.
+    given = segment_volume(image, (1.0, 1.0, 1.0), SegmentConfig.from_mapping({**init, "m1": 8}))
+    assert given.model.m1 == 8 and not any(h["stage"].startswith("grid") for h in given.history)
+
+
 def test_boundary_fraction_is_the_share_of_the_surface_on_a_step():
     from segsnake.region import boundary_fraction
     from segsnake.surfaces import SphereModel
