@@ -202,3 +202,19 @@ def test_ring_barrier_is_zero_until_a_ring_narrows_past_its_floor_and_exact():
     opened = pinched - 1e-3 * grad
     assert barrier.value_and_grad(opened)[0] < value
     assert barrier.value_and_grad(narrowed(0.0))[0] > 1e6  # pinched shut: without bound
+
+
+@pytest.mark.parametrize("model", [SphereModel.ellipsoid([1, 2, 3], [4.0, 5.0, 6.0], m1=9, m2=9),
+                                   CylinderModel.from_axis([0, 0, 0], [3, 4, 30], 5.0, m1=13,
+                                                           m2=11)])
+def test_the_displacement_operator_is_the_surface_moved_by_a_parameter_change(model):
+    # op @ d is sigma(params + d) - sigma(params) on the grid of four samples per knot interval
+    # (sigma is linear in the parameters), whatever the pole constraints.
+    from segsnake.optimize import _displacement_operator
+
+    d = np.random.default_rng(3).normal(size=model.params.shape)
+    u = (np.arange(4 * model.m1) + 0.5) / (4 * model.m1)
+    v = np.linspace(0.0, 1.0, 4 * model.m2 + 1)
+    moved = model.with_params(model.params + d).evaluate(u, v)[0] - model.evaluate(u, v)[0]
+    np.testing.assert_allclose(_displacement_operator(model) @ d, moved.reshape(-1, 3),
+                               atol=1e-12)
