@@ -7,12 +7,14 @@ measured sweep), and the "tried and not kept" numbers of docs/benchmarks.md.
         [--perfect-edges]
 
 For each case of the real-data benchmark (``make bench-real-data``), the benchmark's click and
-its ``--clicks`` perturbed clicks (:func:`bench_real.clicks`) are segmented in this process (``segment_volume``) with the defaults changed by ``--param``
+its ``--clicks`` perturbed clicks (:func:`bench_real.clicks`) are segmented in this process
+(``segment_volume``) with the defaults changed by ``--param``
 (:class:`segsnake.region.RegionParams` fields) and ``--option`` (``segment`` options, as a
 config file names them); each value is a Python literal. Prints one row per case: the Dice of
-every start ("fail" for a run that found no boundary), the control grid where it is not the
-default schedule's last (``[9]``: coarse to fine kept no finer grid), and the wall time.
-``--perfect-edges`` uses the reference mask as the image (the benchmark's ceiling), click only.
+every start ("fail" for a run that found no boundary), the control grid's M1 where it is not
+the default schedule's last (``[9]``: coarse to fine kept no finer grid; a tube's ``[8]``), and
+the wall time. ``--perfect-edges`` uses the reference mask as the image (the benchmark's
+ceiling), click only.
 """
 
 from __future__ import annotations
@@ -82,8 +84,9 @@ def main() -> None:
             except SegmentationError:
                 cells.append("fail")
                 continue
-            grid = "" if res.model.kind == "cylinder" or \
-                res.model.m1 == max(params.finer_m or (9,)) else f"[{res.model.m1}]"
+            # (M1: a sphere's grid, a tube's points around; both end at finer_m's last)
+            grid = "" if res.model.m1 == max(params.finer_m or (res.model.m1,)) \
+                else f"[{res.model.m1}]"
             cells.append(f"{dice(res.mask, truth):.3f}{grid}")
         print(f"{case['name']:24s} {' '.join(cells)}  ({time.perf_counter() - t0:.0f} s)",
               flush=True)

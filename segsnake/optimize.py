@@ -114,7 +114,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     """
     if window < 1:
         raise ValueError(f"window must be at least 1, got {window}")
-    sampler = _displacement_operator(model)
+    sampler = _DisplacementOperator(model)
     v0 = abs(model.volume(order=4))
     nfev = 0
 
@@ -225,7 +225,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
 
 
 def stationarity(model: SplineSurface, energy: float, grad: NDArray, step_mm: float,
-                 sampler: "_DisplacementOperator | None" = None) -> float:
+                 sampler: _DisplacementOperator | None = None) -> float:
     """How far from stationary ``model`` is: the first-order decrease of the energy, relative to
     ``|energy|``, when the surface moves by ``step_mm`` (its largest point displacement) along
     the steepest descent of the L2 gradient flow at this surface.
@@ -247,10 +247,10 @@ def stationarity(model: SplineSurface, energy: float, grad: NDArray, step_mm: fl
         The move the decrease is predicted for (the optimizer's ``step_tol_mm``: a move it would
         count as standing still).
     sampler : _DisplacementOperator, optional
-        :func:`_displacement_operator` of the model's kind and size (built when not given).
+        The model's :class:`_DisplacementOperator` (built when not given).
     """
     if sampler is None:
-        sampler = _displacement_operator(model)
+        sampler = _DisplacementOperator(model)
     d = cho_solve(cho_factor(surface_metric(model)), grad)
     move = float(np.max(np.linalg.norm(sampler @ d, axis=1)))
     if move == 0.0:
@@ -295,11 +295,6 @@ class _DisplacementOperator:
     def __matmul__(self, d: NDArray) -> NDArray:
         grid = (self._constraint @ d).reshape(self._grid)
         return self._basis.positions(grid).reshape(-1, 3)
-
-
-def _displacement_operator(model: SplineSurface, per_interval: int = 4) -> _DisplacementOperator:
-    """The map from a parameter change ``(P, 3)`` to surface displacements on a grid."""
-    return _DisplacementOperator(model, per_interval)
 
 
 def surface_metric(model: SplineSurface, order: int = 4, ridge: float = 1e-6) -> NDArray:

@@ -106,7 +106,7 @@ class _LevelBlob(AnalyticSampler):
 def test_stationarity_is_the_first_order_decrease_and_a_restart_at_it_takes_no_step():
     from scipy.linalg import cho_factor, cho_solve
 
-    from segsnake.optimize import _displacement_operator, stationarity, surface_metric
+    from segsnake.optimize import _DisplacementOperator, stationarity, surface_metric
 
     model = SphereModel.ellipsoid([0, 0, 0], [1.0, 1.2, 0.8], m1=6, m2=6)
     energy = FluxTerm(model, _LevelBlob("blob", s=2.0), weight=-1.0)
@@ -114,7 +114,7 @@ def test_stationarity_is_the_first_order_decrease_and_a_restart_at_it_takes_no_s
     f, g = energy.value_and_grad(model.params)
     d = -cho_solve(cho_factor(surface_metric(model)), g)
     step = 1e-4
-    d *= step / np.max(np.linalg.norm(_displacement_operator(model) @ d, axis=1))
+    d *= step / np.max(np.linalg.norm(_DisplacementOperator(model) @ d, axis=1))
     decrease = (f - energy.value_and_grad(model.params + d)[0]) / abs(f)
     assert abs(stationarity(model, f, g, step) - decrease) < 1e-3 * decrease
     # Minimized to stationarity, restarted at its end: no step, the same energy to the bit.
@@ -210,11 +210,11 @@ def test_ring_barrier_is_zero_until_a_ring_narrows_past_its_floor_and_exact():
 def test_the_displacement_operator_is_the_surface_moved_by_a_parameter_change(model):
     # op @ d is sigma(params + d) - sigma(params) on the grid of four samples per knot interval
     # (sigma is linear in the parameters), whatever the pole constraints.
-    from segsnake.optimize import _displacement_operator
+    from segsnake.optimize import _DisplacementOperator
 
     d = np.random.default_rng(3).normal(size=model.params.shape)
     u = (np.arange(4 * model.m1) + 0.5) / (4 * model.m1)
     v = np.linspace(0.0, 1.0, 4 * model.m2 + 1)
     moved = model.with_params(model.params + d).evaluate(u, v)[0] - model.evaluate(u, v)[0]
-    np.testing.assert_allclose(_displacement_operator(model) @ d, moved.reshape(-1, 3),
+    np.testing.assert_allclose(_DisplacementOperator(model) @ d, moved.reshape(-1, 3),
                                atol=1e-12)
