@@ -127,11 +127,13 @@ static int by_height(const void *a, const void *b)
     return (za > zb) - (za < zb);
 }
 
-/* 0 on success (lo, hi, excess set), -1 when out of memory. `tri`: f triangles of 3 vertices
- * (x, y, z), x and y >= 0. `excess`: the summed length, along the rays, of their stretches wound
- * other than 0 or 1 times, each weighted by how far beyond (|w| for w < 0, w - 1 for w > 1). */
+/* 0 on success (lo, hi, excess, box set), -1 when out of memory. `tri`: f triangles of 3
+ * vertices (x, y, z), x and y >= 0. `excess`: the summed length, along the rays, of their
+ * stretches wound other than 0 or 1 times, each weighted by how far beyond (|w| for w < 0, w - 1
+ * for w > 1); `box`: those stretches' bounds (x0, x1, y0, y1, z0, z1), set by the caller to an
+ * empty box (+inf, -inf, ...) and left so when there are none. */
 static int winding(const double *tri, Py_ssize_t f, long *lo_out, long *hi_out,
-                   double *excess_out)
+                   double *excess_out, double *box)
 {
     Py_ssize_t nx = 1, ny = 1;
     for (Py_ssize_t k = 0; k < 3 * f; k++) {
@@ -185,8 +187,16 @@ static int winding(const double *tri, Py_ssize_t f, long *lo_out, long *hi_out,
                 hi = w;
             /* up to the next crossing the ray is wound w times: beyond 0 or 1 counts */
             long beyond = w < 0 ? -w : (w > 1 ? w - 1 : 0);
-            if (beyond && k + 1 < end)
+            if (beyond && k + 1 < end) {
                 excess += (double)beyond * (sorted[k + 1].z - sorted[k].z);
+                double x = (double)(r / ny), y = (double)(r % ny);
+                box[0] = fmin(box[0], x);
+                box[1] = fmax(box[1], x);
+                box[2] = fmin(box[2], y);
+                box[3] = fmax(box[3], y);
+                box[4] = fmin(box[4], sorted[k].z);
+                box[5] = fmax(box[5], sorted[k + 1].z);
+            }
         }
         first = end;
     }
@@ -196,6 +206,88 @@ static int winding(const double *tri, Py_ssize_t f, long *lo_out, long *hi_out,
     *lo_out = lo;
     *hi_out = hi;
     *excess_out = excess;
+    return 0;
+}
+
+/* The winding number of the mesh about each of n points (x, y, z): the signed count of the
+ * triangles that the ray from the point up along z crosses (+1 where the face's normal points
+ * along the ray, which leaves there), the triangles bucketed by the unit cells of (x, y) that
+ * their projections' bounding boxes touch. 0 on success, -1 when out of memory. */
+static int winding_points(const double *tri, Py_ssize_t f, const double *pts, Py_ssize_t n,
+                          long long *out)
+{
+    if (n == 0)
+        return 0;
+    double x0 = pts[0], y0 = pts[1], x1 = pts[0], y1 = pts[1];
+    for (Py_ssize_t k = 1; k < n; k++) {
+        x0 = fmin(x0, pts[3 * k]);
+        x1 = fmax(x1, pts[3 * k]);
+        y0 = fmin(y0, pts[3 * k + 1]);
+        y1 = fmax(y1, pts[3 * k + 1]);
+    }
+    Py_ssize_t nx = (Py_ssize_t)floor(x1 - x0) + 1, ny = (Py_ssize_t)floor(y1 - y0) + 1;
+    Py_ssize_t cells = nx * ny;
+    Py_ssize_t *start = calloc(cells + 1, sizeof(Py_ssize_t));
+    if (start == NULL)
+        return -1;
+    /* Two passes over the triangles: count per cell, then fill (a counting sort). */
+    Py_ssize_t *list = NULL;
+    for (int pass = 0; pass < 2; pass++) {
+        for (Py_ssize_t t = 0; t < f; t++) {
+            const double *a = tri + 9 * t, *b = a + 3, *c = a + 6;
+            double lx = floor(fmin(a[0], fmin(b[0], c[0])) - x0);
+            double hx = floor(fmax(a[0], fmax(b[0], c[0])) - x0);
+            double ly = floor(fmin(a[1], fmin(b[1], c[1])) - y0);
+            double hy = floor(fmax(a[1], fmax(b[1], c[1])) - y0);
+            if (hx < 0 || hy < 0 || lx > (double)(nx - 1) || ly > (double)(ny - 1))
+                continue;
+            Py_ssize_t i0 = lx > 0 ? (Py_ssize_t)lx : 0, j0 = ly > 0 ? (Py_ssize_t)ly : 0;
+            Py_ssize_t i1 = hx < (double)(nx - 1) ? (Py_ssize_t)hx : nx - 1;
+            Py_ssize_t j1 = hy < (double)(ny - 1) ? (Py_ssize_t)hy : ny - 1;
+            for (Py_ssize_t i = i0; i <= i1; i++)
+                for (Py_ssize_t j = j0; j <= j1; j++) {
+                    if (pass == 0)
+                        start[i * ny + j + 1]++;
+                    else
+                        list[start[i * ny + j]++] = t;
+                }
+        }
+        if (pass == 0) {
+            for (Py_ssize_t r = 0; r < cells; r++)
+                start[r + 1] += start[r];
+            list = malloc((start[cells] ? start[cells] : 1) * sizeof(Py_ssize_t));
+            if (list == NULL) {
+                free(start);
+                return -1;
+            }
+        }
+    }
+    /* Filling advanced start[r] to the end of cell r's list: one cell back, start[r] is its
+     * beginning and start[r + 1] its end. */
+    memmove(start + 1, start, cells * sizeof(Py_ssize_t));
+    start[0] = 0;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        const double *p = pts + 3 * k;
+        Py_ssize_t cell = (Py_ssize_t)floor(p[0] - x0) * ny + (Py_ssize_t)floor(p[1] - y0);
+        long long w = 0;
+        for (Py_ssize_t e = start[cell]; e < start[cell + 1]; e++) {
+            const double *a = tri + 9 * list[e], *b = a + 3, *c = a + 6;
+            double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+            if (area == 0)
+                continue;
+            double sign = area > 0 ? 1.0 : -1.0;
+            double wa, wb, wc;
+            if (!edge(b, c, p[0], p[1], sign, &wa) || !edge(c, a, p[0], p[1], sign, &wb) ||
+                !edge(a, b, p[0], p[1], sign, &wc))
+                continue;
+            double z = (wa * a[2] + wb * b[2] + wc * c[2]) / (wa + wb + wc);
+            if (z > p[2])
+                w += (long long)sign;
+        }
+        out[k] = w;
+    }
+    free(start);
+    free(list);
     return 0;
 }
 
@@ -224,10 +316,11 @@ static int get_triangles(PyObject *obj, Py_buffer *view, Py_ssize_t *f)
 }
 
 PyDoc_STRVAR(windings_doc,
-"windings(triangles) -> (lo, hi, excess)\n\n"
+"windings(triangles) -> (lo, hi, excess, box)\n\n"
 "The least and greatest winding number (0 counted) of a closed mesh about the rays at integer\n"
-"(x, y), and the summed length of the rays' stretches wound beyond 0 or 1, times how far beyond:\n"
-"triangles is a C-contiguous float64 array (F, 3, 3) of vertex coordinates, x, y >= 0.");
+"(x, y), the summed length of the rays' stretches wound beyond 0 or 1, times how far beyond, and\n"
+"those stretches' bounds (x0, x1, y0, y1, z0, z1) (+-inf when there are none): triangles is a\n"
+"C-contiguous float64 array (F, 3, 3) of vertex coordinates, x, y >= 0.");
 
 static PyObject *py_windings(PyObject *self, PyObject *args)
 {
@@ -247,14 +340,67 @@ static PyObject *py_windings(PyObject *self, PyObject *args)
         }
     long lo = 0, hi = 0;
     double excess = 0.0;
+    double box[6] = {INFINITY, -INFINITY, INFINITY, -INFINITY, INFINITY, -INFINITY};
     int status;
     Py_BEGIN_ALLOW_THREADS
-    status = winding(tri, f, &lo, &hi, &excess);
+    status = winding(tri, f, &lo, &hi, &excess, box);
     Py_END_ALLOW_THREADS
     PyBuffer_Release(&view);
     if (status < 0)
         return PyErr_NoMemory();
-    return Py_BuildValue("(lld)", lo, hi, excess);
+    return Py_BuildValue("(lld(dddddd))", lo, hi, excess, box[0], box[1], box[2], box[3], box[4],
+                         box[5]);
+}
+
+PyDoc_STRVAR(winding_at_doc,
+"winding_at(triangles, points, out)\n\n"
+"The winding number of a closed, consistently oriented mesh (a C-contiguous float64 array\n"
+"(F, 3, 3) of vertex coordinates) about each point of a C-contiguous float64 array (N, 3), into\n"
+"the C-contiguous int64 array out (N,): the signed count of the faces above the point along z\n"
+"(+1 for a face whose normal points up). Coordinates in units of about a triangle's size.");
+
+static PyObject *py_winding_at(PyObject *self, PyObject *args)
+{
+    PyObject *obj, *pts_obj, *out_obj;
+    if (!PyArg_ParseTuple(args, "OOO", &obj, &pts_obj, &out_obj))
+        return NULL;
+    Py_buffer view = {0}, pts = {0}, out = {0};
+    Py_ssize_t f;
+    if (get_triangles(obj, &view, &f) < 0)
+        return NULL;
+    if (PyObject_GetBuffer(pts_obj, &pts, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        PyBuffer_Release(&view);
+        return NULL;
+    }
+    if (PyObject_GetBuffer(out_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) < 0) {
+        PyBuffer_Release(&view);
+        PyBuffer_Release(&pts);
+        return NULL;
+    }
+    Py_ssize_t n = pts.len / (3 * (Py_ssize_t)sizeof(double));
+    int ok = pts.itemsize == sizeof(double) && pts.len == 3 * n * (Py_ssize_t)sizeof(double) &&
+             out.itemsize == sizeof(long long) && out.len == n * (Py_ssize_t)sizeof(long long);
+    const double *p = (const double *)pts.buf;
+    for (Py_ssize_t k = 0; ok && k < 3 * n; k++)
+        ok = isfinite(p[k]);
+    if (!ok) {
+        PyBuffer_Release(&view);
+        PyBuffer_Release(&pts);
+        PyBuffer_Release(&out);
+        PyErr_SetString(PyExc_ValueError,
+                        "points: expected finite float64 (N, 3) and out int64 (N,), C-contiguous");
+        return NULL;
+    }
+    int status;
+    Py_BEGIN_ALLOW_THREADS
+    status = winding_points((const double *)view.buf, f, p, n, (long long *)out.buf);
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&view);
+    PyBuffer_Release(&pts);
+    PyBuffer_Release(&out);
+    if (status < 0)
+        return PyErr_NoMemory();
+    Py_RETURN_NONE;
 }
 
 PyDoc_STRVAR(parity_doc,
@@ -300,6 +446,7 @@ static PyObject *py_parity(PyObject *self, PyObject *args)
 static PyMethodDef methods[] = {
     {"windings", py_windings, METH_VARARGS, windings_doc},
     {"parity", py_parity, METH_VARARGS, parity_doc},
+    {"winding_at", py_winding_at, METH_VARARGS, winding_at_doc},
     {NULL, NULL, 0, NULL},
 };
 

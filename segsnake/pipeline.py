@@ -42,12 +42,11 @@ from scipy import ndimage
 
 from segsnake.distance import distance_to, distance_within
 from segsnake.moments import mask_moments
-from segsnake.energy import AxialTension, FluxTerm, RingBarrier, SumEnergy
+from segsnake.energy import AxialTension, CrossingPenalty, FluxTerm, RingBarrier, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.frames import flux_frame
 from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
 from segsnake.parallel import gaussian_filter, pieces, thread_map
-from segsnake.rasterize import crossing_volume
 from segsnake.regularize import BendingRegularizer
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, axial_rings, \
     model_from_dict
@@ -83,14 +82,6 @@ QUADRATURE_RTOL = 2e-3
 #: catches gross under-resolution (measured: 0.2-1 % while a blob's refinement runs).
 QUADRATURE_CHECK_EVERY = 25
 QUADRATURE_RTOL_RUNNING = 2e-2
-#: The share of a region stage's volume that its surface may wrap other than once (crossing
-#: itself or turned inside out; :class:`_Admissible`): the volume integral is then wrong by at
-#: most that share of the density's scale, the accuracy a running stage's energy is trusted to
-#: (``QUADRATURE_RTOL_RUNNING``). A tube's planar end caps graze its wall where an end ring is
-#: not flat: measured, a perfect-edge lung2 trachea (16 x 8) keeps 0.2 % of its volume wrapped
-#: twice there and was stuck at Dice 0.39 with 2e-3 (0.914 with 1e-2 and 2e-2), a perturbed
-#: trachea click at 0.68 with 0 (0.80 from 5e-4 up). Sweep in docs/benchmarks.md.
-CROSSING_RTOL = QUADRATURE_RTOL_RUNNING
 #: The region energy's density beyond the field of view (voxels of padding, and the density
 #: there: +1, what the region densities give far outside an object, whose inside is negative).
 #: Space the image does not show is not the object: a tube that leaves the volume ends on its
@@ -910,7 +901,8 @@ class _Run:
                weight=-1.0, region=False, stationary=False, resume=None, leaves=None, used=0):
         model, res = _run_stage(model, lookup, weight, self.config, self.bounds, self.extra, band,
                                 feature_mm, tol, node_spacing, region, stationary, resume,
-                                leaves, used)
+                                leaves, used,
+                                self.region_params.crossing_weight if region else 0.0)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         # What defines the energy this stage ended in (its lookup is self.lookup), for the
@@ -1071,7 +1063,7 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
                node_spacing=None, region=False, stationary=False, resume=None, leaves=None,
-               used=0):
+               used=0, crossing_weight=0.0):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -1089,7 +1081,8 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
 
     ``region``: the lookup integrates a volume density (:mod:`segsnake.region`), which moves the
     surface far from its start: the fold check follows the surface (:class:`_Admissible`) and
-    the bending is weighted for a volume energy (:func:`_stage_energy`).
+    the bending is weighted for a volume energy, and the volume the surface wraps other than
+    once is priced at ``crossing_weight`` per mm^3 (:func:`_stage_energy`).
 
     A round's energy is defined by the lookup, the round's *reference* surface (its start, which
     sets the regularization weights, the ring barrier and the longest allowed intervals) and its
@@ -1136,7 +1129,8 @@ def _run_stage(model, lookup, weight, config, bounds, extra_energy, band, featur
             order = tuple(int(max(quadrature_order(length, feature_mm, node_spacing), lo))
                           for length, lo in zip(max_interval, floor))
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
-        energy = _stage_energy(reference, lookup, weight, order, extra_energy, region)
+        energy = _stage_energy(reference, lookup, weight, order, extra_energy, region,
+                               crossing_weight)
         check = _QuadratureCheck(energy.terms[0], fine, checks, model.params)
         admissible = _Admissible(reference, max_interval, follow=region)
         res = minimize_energy(model, energy, max_iter=max(max_iter - iterations, 1),
@@ -1259,19 +1253,10 @@ class _Admissible:
     start's (its lobes legitimately turn normals by more than 90 degrees: measured on the
     Colin27 brain, the start's check stopped the growth at a tenth of the volume), and a step
     that shrinks the volume below :data:`MIN_VOLUME_FRACTION` of the start's is refused (a
-    surface that collapses through itself turns no normal by 90 degrees in one step). Such a
-    stage also refuses a step whose surface crosses itself or turns inside out by more than
-    :data:`CROSSING_RTOL` of its volume, or by more than its start did when that was more (as
-    a hand-edited snake, or a coarser grid's surface projected onto a finer one, may;
-    :func:`segsnake.rasterize.crossing_volume`): a volume integral counts a region the surface
-    wraps twice twice and one it wraps inside out negatively, so a density that is positive
-    outside the object rewards a surface that passes one part through another, and step by step no
-    normal need turn by 90 degrees (measured on the Colin27 thalamus before the test: a round
-    shrank the surface from 68 000 to 7 000 mm^3 while its mask kept 34 000 voxels, half of it
-    wrapped inside out, and the next went on to 3 mm^3: Dice 0.06; with the test 0.23. A start
-    beyond the share went untested before: the perfect-edge hippocampus' 13 x 13 grid, projected
-    from a 9 x 9 surface that crossed itself by 2.1 %, then collapsed to 1 % of its volume in 93
-    iterations, which the volume test of coarse to fine refused).
+    surface that collapses through itself turns no normal by 90 degrees in one step). A surface
+    that passes one part through another is not refused: such a stage's energy prices the
+    volume it wraps other than once (:class:`segsnake.energy.CrossingPenalty`, whose gradient
+    also undoes a crossing the start has).
 
     A tube's rings are checked too (any stage): each ring's signed area vector
     ``1/2 integral sigma x sigma_u du`` must point along the tube (its component along the
@@ -1290,9 +1275,6 @@ class _Admissible:
         self.follow = follow
         volume = abs(start.volume(order=4)) if follow else 0.0
         self.min_volume = MIN_VOLUME_FRACTION * volume if follow else None
-        # (a start that already crosses itself by more, as a hand-edited snake or a coarser
-        # grid's surface projected onto a finer one may, may not cross itself further)
-        self.start_crossing = crossing_volume(start) if follow else None
         u = (np.arange(per_interval * start.m1) + 0.5) / (per_interval * start.m1)
         # Two intervals at each pole (one when M2 = 4: two would leave no row to check).
         skip = per_interval * min(2, (start.m2 - 1) // 2) if start.kind == "sphere" else 0
@@ -1318,9 +1300,8 @@ class _Admissible:
     def __call__(self, params: NDArray) -> bool:
         if np.any(longest_intervals(self.start, params) > self.max_interval):
             return False
-        surface = self.start.with_params(params) if self.follow else None
-        volume = surface.volume(order=4) if self.follow else None
-        if self.min_volume is not None and volume < self.min_volume:
+        if self.min_volume is not None and \
+                self.start.with_params(params).volume(order=4) < self.min_volume:
             return False
         if self.rings is not None and np.any(self.rings.areas(params)[0] < self.min_area):
             return False
@@ -1329,8 +1310,7 @@ class _Admissible:
             return False
         # (kept: the step accepted is the last one tested, and following() compares with it)
         self._tested = (params.copy(), normals)
-        return self.start_crossing is None or crossing_volume(surface) <= \
-            max(CROSSING_RTOL * abs(volume), self.start_crossing)
+        return True
 
     def following(self, callback: Callable[[int, float, NDArray], bool]):
         """The optimizer's callback: with ``follow``, each accepted iterate becomes the
@@ -1346,8 +1326,11 @@ class _Admissible:
         return accept
 
 
-def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> SumEnergy:
-    """The stage's energy; its first term is the image's :class:`FluxTerm`."""
+def _stage_energy(model, lookup, weight, order, extra_energy, region=False,
+                  crossing_weight=0.0) -> SumEnergy:
+    """The stage's energy; its first term is the image's :class:`FluxTerm`. A region stage's
+    prices the volume its surface wraps other than once at ``crossing_weight`` per mm^3
+    (:class:`CrossingPenalty`)."""
     flux = FluxTerm(model, lookup, weight=weight, order=order, closed=region)
     terms = [flux]
     # (measured once: the terms' weights all scale with them)
@@ -1366,6 +1349,8 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False) -> S
         scale = per_area if region else 1.0
         terms.append(BendingRegularizer(model, weight=REGULARIZATION * scale * area / r ** 2,
                                         tube=region))
+    if region and crossing_weight > 0:
+        terms.append(CrossingPenalty(model, weight=crossing_weight))
     if model.kind == "cylinder" and region:
         # A ring may narrow but not close: the barrier costs a ring at a twentieth of its
         # start's area about as much as the volume of its slab of the tube.

@@ -26,7 +26,8 @@ from numpy.typing import NDArray
 
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["rasterize", "mesh_for_mask", "scan_convert", "windings", "crossing_volume"]
+__all__ = ["rasterize", "mesh_for_mask", "scan_convert", "windings", "crossing_volume",
+           "SelfCrossing"]
 
 #: Triangles per batch of :func:`scan_convert`: their vertex coordinates, the compiled scan's
 #: input, take 72 bytes a triangle (9 MB a batch; a brain's mask mesh has 660 000 triangles).
@@ -58,19 +59,66 @@ CROSSING_PER_INTERVAL = 3
 def crossing_volume(model: SplineSurface) -> float:
     """The volume (mm^3) the closed surface (a cylinder with its caps) wraps other than once or
     not at all, each part weighted by how many times too many: ``integral |k - clip(k, 0, 1)|
-    dx``, ``k`` the winding number; 0 for an embedded surface.
+    dx``, ``k`` the winding number; 0 for an embedded surface (:class:`SelfCrossing`)."""
+    return SelfCrossing(model).volume
 
-    Measured along rays parallel to the last axis (:func:`windings`), half the mesh's mean
-    chord ``h`` apart, each standing for ``h^2`` of area: a crossing narrower than that may be
-    missed until it grows to it.
+
+#: How far off the surface :meth:`SelfCrossing.outside_windings` reads the winding number, in
+#: units of the rays' spacing ``h``: beyond the mesh's sagitta (its chords, about 2 h long, cut
+#: the surface by about ``h^2 / 2R`` where its radius of curvature is R: below h / 4 wherever
+#: R > 2 h).
+OFFSET_PER_SPACING = 0.25
+
+
+class SelfCrossing:
+    """Where a closed surface (a cylinder with its caps) crosses itself, measured on a mesh with
+    :data:`CROSSING_PER_INTERVAL` vertices per control interval.
+
+    ``volume``: ``integral |k - clip(k, 0, 1)| dx`` (mm^3), ``k`` the winding number, summed
+    along rays parallel to the last axis (:func:`windings`) half the mesh's mean chord ``h``
+    apart, each standing for ``h^2`` of area: a crossing narrower than that may be missed until
+    it grows to it. ``box``: the bounds ``(lo, hi)`` (mm) of the rays' stretches wound other
+    than 0 or 1 times (None when there are none).
     """
-    from segsnake._scan import windings as kernel
 
-    n = CROSSING_PER_INTERVAL
-    points, tris = model.triangles(n * model.m1, n * model.m2)
-    corners = points[tris]
-    h = 0.5 * float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1).mean())
-    return kernel(_on_rays(corners / h))[2] * h ** 3
+    def __init__(self, model: SplineSurface) -> None:
+        from segsnake._scan import windings as kernel
+
+        n = CROSSING_PER_INTERVAL
+        points, tris = model.triangles(n * model.m1, n * model.m2)
+        corners = points[tris]
+        self.h = 0.5 * float(np.linalg.norm(corners - np.roll(corners, 1, axis=1),
+                                            axis=-1).mean())
+        self.corners = corners / self.h
+        rays, origin = _on_rays(self.corners)
+        excess, box = kernel(rays)[2:]
+        self.volume = excess * self.h ** 3
+        self.box = None
+        if excess > 0:
+            box = np.asarray(box).reshape(3, 2).T + origin
+            self.box = (box[0] * self.h, box[1] * self.h)
+
+    def outside_windings(self, points: NDArray, normals: NDArray) -> NDArray:
+        """The winding number just outside each surface point: about ``points +
+        OFFSET_PER_SPACING h normals / |normals|`` (``points``, ``normals`` ``(n, 3)``, mm;
+        ``normals`` outward). 0 everywhere on an embedded surface; where the surface runs inside
+        another part of itself, 1 or more (or -1 or less where it runs through a part turned
+        inside out). Such a point borders a region wound other than 0 or 1 times, so only the
+        points within :attr:`box` (grown by a ray spacing and the offset) are computed."""
+        from segsnake._scan import winding_at
+
+        out = np.zeros(len(points), dtype=np.int64)
+        if self.box is None:
+            return out
+        unit = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-300)
+        queries = points / self.h + OFFSET_PER_SPACING * unit
+        lo, hi = self.box[0] / self.h - 1.5, self.box[1] / self.h + 1.5
+        near = np.flatnonzero(np.all((queries >= lo) & (queries <= hi), axis=1))
+        found = np.zeros(len(near), dtype=np.int64)
+        winding_at(np.ascontiguousarray(self.corners),
+                   np.ascontiguousarray(queries[near], dtype=np.float64), found)
+        out[near] = found
+        return out
 
 
 def rasterize(model: SplineSurface, shape: Sequence[int], spacing: Sequence[float]) -> NDArray[np.bool_]:
@@ -141,12 +189,13 @@ def windings(points: NDArray, tris: NDArray) -> tuple[int, int, float]:
     from segsnake._scan import windings as kernel
 
     points = np.asarray(points, dtype=np.float64)
-    return kernel(_on_rays(points[np.asarray(tris, dtype=np.int64)]))
+    return kernel(_on_rays(points[np.asarray(tris, dtype=np.int64)])[0])[:3]
 
 
-def _on_rays(corners: NDArray) -> NDArray:
+def _on_rays(corners: NDArray) -> tuple[NDArray, NDArray]:
     """Triangles' vertex coordinates ``(f, 3, 3)`` moved by whole ray spacings so that
-    ``x, y >= 0`` (the winding kernel's input; the rays stay at integer ``(x, y)``)."""
+    ``x, y >= 0`` (the winding kernel's input; the rays stay at integer ``(x, y)``), and the
+    shift ``origin`` (the input is the output plus it)."""
     origin = np.floor(corners.reshape(-1, 3).min(axis=0)) if corners.size else np.zeros(3)
     origin[2] = 0.0
-    return np.ascontiguousarray(corners - origin)
+    return np.ascontiguousarray(corners - origin), origin

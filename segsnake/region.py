@@ -97,6 +97,14 @@ class RegionParams:
     #: blob: the first stage crept by 4e-5 per iteration for 200 iterations into the lobes,
     #: which the next rounds reach anyway); the last stage uses the ``tol`` option.
     interim_tol: float = 1e-4
+    #: Price of the volume the surface wraps other than once, per mm^3, in units of the
+    #: density's scale (the two-class density lies in [-1, 1]; :class:`CrossingPenalty`). A
+    #: volume integral counts a region wrapped twice twice, so a surface that passes one part
+    #: through another gains up to 1 per mm^3 of it: at 2 no crossing pays. (It replaced a
+    #: refusal of steps that crossed by more than 2 % of the volume, which the surfaces spent:
+    #: the perfect-edge hippocampus folded within it and stayed folded, Dice 0.824; sweep in
+    #: docs/benchmarks.md, session 14.)
+    crossing_weight: float = 2.0
     #: Longest move of the surface per optimizer step (mm): about the smoothing widths, so that a
     #: step cannot jump across a boundary it has not seen.
     step_mm: float = 2.0

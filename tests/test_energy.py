@@ -218,3 +218,47 @@ def test_the_displacement_operator_is_the_surface_moved_by_a_parameter_change(mo
     moved = model.with_params(model.params + d).evaluate(u, v)[0] - model.evaluate(u, v)[0]
     np.testing.assert_allclose(_DisplacementOperator(model) @ d, moved.reshape(-1, 3),
                                atol=1e-12)
+
+
+def test_crossing_penalty_is_zero_when_embedded_and_its_gradient_undoes_a_crossing():
+    from segsnake.energy import CrossingPenalty
+    from segsnake.rasterize import crossing_volume
+
+    ball = SphereModel.ellipsoid((20, 20, 20), (10, 10, 10))
+    penalty = CrossingPenalty(ball, weight=2.0, order=8)
+    value, grad = penalty.value_and_grad(ball.params)
+    assert value == 0.0 and not grad.any()
+    # Its control points beyond x = 25 moved 25 mm to -x: that cap passes through the far side.
+    crossed = ball.params.copy()
+    crossed[crossed[:, 0] > 25, 0] -= 25.0
+    value, grad = penalty.value_and_grad(crossed)
+    assert value == pytest.approx(2.0 * crossing_volume(ball.with_params(crossed)))
+    assert value > 2.0 * 1000  # mm^3
+    # The gradient is the shape derivative: the slope of the crossing volume along random
+    # directions (fitted over +-0.3 mm: the measured volume has ray noise of ~1 mm^3), to the
+    # accuracy of the measuring mesh (measured: 2-30 %, 1-10 % on a mesh 3 x finer).
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        d = rng.normal(size=crossed.shape)
+        t = np.linspace(-0.3, 0.3, 13)
+        slope = np.polyfit(t, [penalty.value_and_grad(crossed + ti * d)[0] for ti in t], 1)[0]
+        assert slope == pytest.approx(np.sum(grad * d), rel=0.35, abs=30.0)
+    # A step against it removes crossing volume at the rate it predicts.
+    unit = grad / np.linalg.norm(grad)
+    drop = value - penalty.value_and_grad(crossed - 1.0 * unit)[0]
+    assert drop == pytest.approx(np.linalg.norm(grad), rel=0.2)
+
+
+def test_minimizing_the_crossing_penalty_alone_undoes_a_crossing():
+    from segsnake.energy import CrossingPenalty
+    from segsnake.rasterize import crossing_volume
+
+    ball = SphereModel.ellipsoid((20, 20, 20), (10, 10, 10))
+    crossed = ball.params.copy()
+    crossed[crossed[:, 0] > 25, 0] -= 25.0  # one cap through the far side: turned inside out
+    start = ball.with_params(crossed)
+    assert start.volume(order=8) < 0 and crossing_volume(start) > 1000.0
+    res = minimize_energy(start, CrossingPenalty(start, weight=2.0), max_iter=100)
+    # (measured: 1871 -> 6 mm^3 in 10 iterations, the volume -1617 -> +1502 mm^3)
+    assert crossing_volume(res.model) < 0.01 * crossing_volume(start)
+    assert res.model.volume(order=8) > 1000.0

@@ -99,12 +99,14 @@ def test_a_tube_ring_may_not_tilt_over_or_flatten():
     assert _Admissible(tube, np.array([1e9, 1e9]), follow=True)(with_row(3, 0.5))
 
 
-def test_a_region_stage_refuses_a_surface_that_crosses_itself():
+def test_a_region_stage_prices_a_surface_that_crosses_itself_instead_of_refusing_it():
     # A hairpin tube (legs 16 mm apart, radius 3 mm) whose legs' control points are moved
-    # towards each other: no normal turns over, no ring shrinks; only the test for self-crossing
-    # refuses the legs pushed into each other, and only in a region stage (follow=True), whose
-    # volume integral it would corrupt.
-    from segsnake.pipeline import _Admissible
+    # towards each other: pushed 8 mm, the legs overlap (81 mm^3 wrapped twice). A region stage
+    # takes the step (a refusal only kept the surface from crossing further; one that had
+    # crossed stayed so, docs/benchmarks.md session 14), and its energy carries the price of
+    # the crossing, crossing_weight per mm^3.
+    from segsnake.pipeline import _Admissible, _stage_energy
+    from segsnake.rasterize import crossing_volume
     from segsnake.surfaces import CylinderModel
 
     axis = [(5, 10, 5), (5, 10, 35), (13, 10, 45), (21, 10, 35), (21, 10, 5)]
@@ -116,20 +118,21 @@ def test_a_region_stage_refuses_a_surface_that_crosses_itself():
         moved[:, 0] += d * np.clip((13 - points[:, 0]) / 4, -1, 1) * (points[:, 2] < 36)
         return moved.reshape(start.params.shape)
 
-    region = _Admissible(start, np.array([1e9, 1e9]), follow=True)
-    assert region(legs_moved(4))  # narrowed in places, apart
-    assert not region(legs_moved(8))  # the legs pushed into each other
-    assert _Admissible(start, np.array([1e9, 1e9]))(legs_moved(8))  # an edge stage's check
-    # A start that already crosses itself (a hand-edited snake, or a coarser grid's surface
-    # projected onto a finer grid) may not cross itself further: the legs pushed deeper into
-    # each other are refused, drawn apart accepted. (Before, such a start went untested: a
-    # finer grid's stage then collapsed through itself.)
-    # (crossing volume measured: 81 mm^3 at 8 mm, 435 mm^3 at 12 mm, 0 at 4 mm; 2 % of the
-    # volume is 47 mm^3)
-    from_crossed = _Admissible(start.with_params(legs_moved(8)), np.array([1e9, 1e9]),
-                               follow=True)
-    assert not from_crossed(legs_moved(12))
-    assert from_crossed(legs_moved(4))
+    assert _Admissible(start, np.array([1e9, 1e9]), follow=True)(legs_moved(8))
+
+    class Volume:  # G = x: the flux is the volume integral of 1
+        def sample(self, p):
+            return p[:, 0].copy(), np.tile([1.0, 0.0, 0.0], (len(p), 1))
+
+    crossed = legs_moved(8)
+    volume = crossing_volume(start.with_params(crossed))
+    assert volume > 40.0
+    priced = _stage_energy(start, Volume(), 1.0, 4, None, region=True, crossing_weight=2.0)
+    free = _stage_energy(start, Volume(), 1.0, 4, None, region=True)
+    assert priced.value_and_grad(crossed)[0] - free.value_and_grad(crossed)[0] == \
+        pytest.approx(2.0 * volume)
+    apart = legs_moved(4)  # narrowed in places, apart: no price
+    assert priced.value_and_grad(apart)[0] == free.value_and_grad(apart)[0]
 
 
 def test_dark_object_on_bright_background_is_found_with_auto_polarity():

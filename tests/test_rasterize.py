@@ -4,7 +4,7 @@ counted once, even where it meets an edge or a vertex of the mesh exactly."""
 import numpy as np
 import pytest
 
-from segsnake.rasterize import crossing_volume, rasterize, scan_convert, windings
+from segsnake.rasterize import SelfCrossing, crossing_volume, rasterize, scan_convert, windings
 from segsnake.surfaces import CylinderModel, SphereModel
 
 
@@ -144,3 +144,30 @@ def test_crossing_volume_of_a_dented_surface_and_of_one_pushed_through_itself():
     apart = hairpin + np.array([-8, -8, 0, 8, 8])[:, None] * [1, 0, 0]
     assert crossing_volume(CylinderModel.from_centerline(apart, 3.0, m2=12)) == 0.0
     assert crossing_volume(CylinderModel.from_centerline(hairpin, 3.0, m2=12)) > 20.0
+
+
+def _surface_samples(model, n=12):
+    """Points ``(n^2, 3)`` on the surface away from its poles and their outward normals."""
+    u = (np.arange(n) + 0.5) / n
+    v = 0.1 + 0.8 * (np.arange(n) + 0.5) / n
+    s, su, sv = model.grid_basis(u, v).evaluate(model.control_points())
+    return s.reshape(-1, 3), (model.orientation * np.cross(sv, su)).reshape(-1, 3)
+
+
+def test_outside_windings_are_zero_on_an_embedded_surface_and_tell_where_it_crosses():
+    ball = SelfCrossing(SphereModel.ellipsoid((20, 20, 20), (10, 10, 10)))
+    assert ball.volume == 0 and ball.box is None
+    points, normals = _surface_samples(SphereModel.ellipsoid((20, 20, 20), (10, 10, 10)))
+    assert not ball.outside_windings(points, -normals).any()  # (not computed: no crossing)
+    # Its top pushed down past its bottom: the lens between them is wound -1 times, and the
+    # outward normals of both sheets point into it.
+    inverted = _squashed_sphere(-1.5)
+    crossing = SelfCrossing(inverted)
+    lo, hi = crossing.box
+    np.testing.assert_allclose(lo[:2], [10, 10], atol=2 * crossing.h)  # the lens' extent
+    np.testing.assert_allclose(hi[:2], [30, 30], atol=2 * crossing.h)
+    points, normals = _surface_samples(inverted)
+    k = crossing.outside_windings(points, normals)
+    assert set(np.unique(k)) <= {-1, 0}
+    assert np.mean(k == -1) > 0.9
+    assert np.all(crossing.outside_windings(points, -normals) == 0)  # the lens' other side
