@@ -278,7 +278,7 @@ class CrossingPenalty:
 
     A flux or volume energy counts a region the surface wraps twice twice, and one it wraps
     inside out negatively: a density's volume integral can be lowered by passing one part of
-    the surface through another (docs/design.md, "Folds"). With ``weight`` at least the
+    the surface through another (docs/design.md, "No self-crossing"). With ``weight`` at least the
     density's largest magnitude, no such crossing lowers the sum, and where one exists the
     gradient pushes the surface out of it.
 
