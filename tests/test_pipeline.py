@@ -76,6 +76,22 @@ def test_fold_check_rows_leave_out_the_pole_intervals():
     assert rows(CylinderModel.unit(6, 4)) == 12
 
 
+def test_an_edge_stage_refuses_a_fold_and_a_region_stage_prices_it_instead():
+    from segsnake.pipeline import _Admissible
+    from segsnake.surfaces import SphereModel
+
+    ball = SphereModel.ellipsoid((20, 20, 20), (10, 10, 10))
+    dented = ball.params.copy()  # its upper half pushed down to -0.3 of its height: turned over
+    top = dented[:, 2] > 20
+    dented[top, 2] = 20 - 0.3 * (dented[top, 2] - 20)
+    assert ball.with_params(dented).volume(order=8) > 0.2 * ball.volume(order=8)
+    assert not _Admissible(ball, np.array([1e9, 1e9]))(dented)  # normals turned over
+    assert _Admissible(ball, np.array([1e9, 1e9]), follow=True)(dented)
+    collapsed = ball.params.copy()
+    collapsed[:, 2] = 20 + 0.01 * (collapsed[:, 2] - 20)  # flat: below MIN_VOLUME_FRACTION
+    assert not _Admissible(ball, np.array([1e9, 1e9]), follow=True)(collapsed)
+
+
 def test_a_tube_ring_may_not_tilt_over_or_flatten():
     from segsnake.pipeline import _Admissible
     from segsnake.surfaces import CylinderModel
