@@ -13,8 +13,11 @@
  *   round, the brain's with 660 000 triangles; numpy's version of this loop took 0.18 s a mask.
  * - windings: the crossings are bucketed by ray, sorted by height within each ray, and the
  *   winding number runs along each ray, the crossings at one height taken together. The region
- *   stages test every trial step's surface with it (~10^3 triangles, a few thousand times a
- *   run), where numpy spent ~1 ms a test in the overhead of some forty small array operations.
+ *   stages' crossing penalty measures every evaluated surface with it (~10^3 triangles, a few
+ *   thousand times a run), where numpy spent ~1 ms in the overhead of some forty small array
+ *   operations.
+ * - winding_at: the winding number about given points (the faces above each, bucketed by the
+ *   unit cells their projections' bounding boxes touch), where the penalty's gradient needs it.
  *
  * Plain C on Python buffers (no numpy headers); the GIL is released. The arithmetic is the
  * order the comments give, without contraction into fused multiply-adds (setup.py builds with
@@ -209,10 +212,15 @@ static int winding(const double *tri, Py_ssize_t f, long *lo_out, long *hi_out,
     return 0;
 }
 
+/* The query points' extent along x and along y, in cells, beyond which winding_at refuses them
+ * (its bucket grid would not fit in memory). */
+#define MAX_CELLS_PER_SIDE 16384.0
+
 /* The winding number of the mesh about each of n points (x, y, z): the signed count of the
  * triangles that the ray from the point up along z crosses (+1 where the face's normal points
  * along the ray, which leaves there), the triangles bucketed by the unit cells of (x, y) that
- * their projections' bounding boxes touch. 0 on success, -1 when out of memory. */
+ * their projections' bounding boxes touch. 0 on success, -1 when out of memory, -2 when the
+ * points span more than MAX_CELLS_PER_SIDE cells along x or y. */
 static int winding_points(const double *tri, Py_ssize_t f, const double *pts, Py_ssize_t n,
                           long long *out)
 {
@@ -225,6 +233,8 @@ static int winding_points(const double *tri, Py_ssize_t f, const double *pts, Py
         y0 = fmin(y0, pts[3 * k + 1]);
         y1 = fmax(y1, pts[3 * k + 1]);
     }
+    if (!(x1 - x0 < MAX_CELLS_PER_SIDE) || !(y1 - y0 < MAX_CELLS_PER_SIDE))
+        return -2; /* (the caller scales points to about a triangle's size) */
     Py_ssize_t nx = (Py_ssize_t)floor(x1 - x0) + 1, ny = (Py_ssize_t)floor(y1 - y0) + 1;
     Py_ssize_t cells = nx * ny;
     Py_ssize_t *start = calloc(cells + 1, sizeof(Py_ssize_t));
@@ -372,13 +382,19 @@ static PyObject *py_winding_at(PyObject *self, PyObject *args)
         PyBuffer_Release(&view);
         return NULL;
     }
-    if (PyObject_GetBuffer(out_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) < 0) {
+    if (PyObject_GetBuffer(out_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
         PyBuffer_Release(&view);
         PyBuffer_Release(&pts);
         return NULL;
     }
+    const char *pf = pts.format ? pts.format : "B", *of = out.format ? out.format : "B";
+    if ((pf[0] == '<' || pf[0] == '=' || pf[0] == '@') && pf[1] != '\0')
+        pf++;
+    if ((of[0] == '<' || of[0] == '=' || of[0] == '@') && of[1] != '\0')
+        of++;
     Py_ssize_t n = pts.len / (3 * (Py_ssize_t)sizeof(double));
-    int ok = pts.itemsize == sizeof(double) && pts.len == 3 * n * (Py_ssize_t)sizeof(double) &&
+    int ok = strcmp(pf, "d") == 0 && pts.len == 3 * n * (Py_ssize_t)sizeof(double) &&
+             (strcmp(of, "q") == 0 || (strcmp(of, "l") == 0 && sizeof(long) == 8)) &&
              out.itemsize == sizeof(long long) && out.len == n * (Py_ssize_t)sizeof(long long);
     const double *p = (const double *)pts.buf;
     for (Py_ssize_t k = 0; ok && k < 3 * n; k++)
@@ -398,6 +414,10 @@ static PyObject *py_winding_at(PyObject *self, PyObject *args)
     PyBuffer_Release(&view);
     PyBuffer_Release(&pts);
     PyBuffer_Release(&out);
+    if (status == -2) {
+        PyErr_SetString(PyExc_ValueError, "points: spread over too many cells along x or y");
+        return NULL;
+    }
     if (status < 0)
         return PyErr_NoMemory();
     Py_RETURN_NONE;

@@ -24,8 +24,9 @@ How the edge stages get the surface onto the boundary (design.md, "Where the min
    CSF), capture and refinement again on the steps just inside the sheet.
 
 Every stage minimizes its image term plus the internal energy (:mod:`segsnake.regularize`),
-plus an axial pull on open cylinders' ends and the user's shape prior, with the step-limited,
-fold-refusing L-BFGS of :mod:`segsnake.optimize`.
+plus an axial pull on open cylinders' ends and the user's shape prior, with the step-limited
+L-BFGS of :mod:`segsnake.optimize` (the edge stages refuse steps that fold the surface; the
+region stages price the volume it wraps twice).
 """
 
 from __future__ import annotations
@@ -1274,7 +1275,6 @@ class _Admissible:
                  follow: bool = False) -> None:
         self.start = start
         self.max_interval = max_interval
-        self.follow = follow
         self.min_volume = MIN_VOLUME_FRACTION * abs(start.volume(order=4)) if follow else None
         self.n0 = None
         if not follow:

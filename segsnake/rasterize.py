@@ -68,6 +68,9 @@ def crossing_volume(model: SplineSurface) -> float:
 #: the surface by about ``h^2 / 2R`` where its radius of curvature is R: below h / 4 wherever
 #: R > 2 h).
 OFFSET_PER_SPACING = 0.25
+#: How far beyond the box of the rays' over-wound stretches :meth:`SelfCrossing.outside_windings`
+#: looks, in ray spacings.
+BOX_MARGIN = 4.0
 
 
 class SelfCrossing:
@@ -104,7 +107,10 @@ class SelfCrossing:
         ``normals`` outward). 0 everywhere on an embedded surface; where the surface runs inside
         another part of itself, 1 or more (or -1 or less where it runs through a part turned
         inside out). Such a point borders a region wound other than 0 or 1 times, so only the
-        points within :attr:`box` (grown by a ray spacing and the offset) are computed."""
+        points within :attr:`box` grown by :data:`BOX_MARGIN` ray spacings are computed: the
+        box holds the rays' stretches, and a tilted or thin part of the region reaches past the
+        nearest ray (measured on touching hairpin legs: up to 1.9 spacings); what lies further
+        is missed, as a crossing narrower than the spacing is by the volume."""
         from segsnake._scan import winding_at
 
         out = np.zeros(len(points), dtype=np.int64)
@@ -112,7 +118,7 @@ class SelfCrossing:
             return out
         unit = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-300)
         queries = points / self.h + OFFSET_PER_SPACING * unit
-        lo, hi = self.box[0] / self.h - 1.5, self.box[1] / self.h + 1.5
+        lo, hi = self.box[0] / self.h - BOX_MARGIN, self.box[1] / self.h + BOX_MARGIN
         near = np.flatnonzero(np.all((queries >= lo) & (queries <= hi), axis=1))
         found = np.zeros(len(near), dtype=np.int64)
         winding_at(np.ascontiguousarray(self.corners),

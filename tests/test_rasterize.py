@@ -157,8 +157,6 @@ def _surface_samples(model, n=12):
 def test_outside_windings_are_zero_on_an_embedded_surface_and_tell_where_it_crosses():
     ball = SelfCrossing(SphereModel.ellipsoid((20, 20, 20), (10, 10, 10)))
     assert ball.volume == 0 and ball.box is None
-    points, normals = _surface_samples(SphereModel.ellipsoid((20, 20, 20), (10, 10, 10)))
-    assert not ball.outside_windings(points, -normals).any()  # (not computed: no crossing)
     # Its top pushed down past its bottom: the lens between them is wound -1 times, and the
     # outward normals of both sheets point into it.
     inverted = _squashed_sphere(-1.5)
@@ -171,3 +169,25 @@ def test_outside_windings_are_zero_on_an_embedded_surface_and_tell_where_it_cros
     assert set(np.unique(k)) <= {-1, 0}
     assert np.mean(k == -1) > 0.9
     assert np.all(crossing.outside_windings(points, -normals) == 0)  # the lens' other side
+
+
+def test_winding_at_counts_the_faces_above_each_point_and_refuses_bad_buffers():
+    from segsnake._scan import winding_at
+
+    ball = SphereModel.ellipsoid((20, 20, 20), (10, 10, 10))
+    points, tris = ball.triangles(36, 18)
+    corners = np.ascontiguousarray(points[tris])
+    queries = np.array([[20.0, 20, 20], [20, 20, 35], [29.5, 20, 20], [30.5, 20, 20],
+                        [20, 20, 10.5], [20, 20, 9.5], [-5, 3, 1]])
+    out = np.zeros(len(queries), dtype=np.int64)
+    winding_at(corners, queries, out)
+    assert list(out) == [1, 0, 1, 0, 1, 0, 0]
+    winding_at(np.ascontiguousarray(corners[:, ::-1]), queries, out)  # turned inside out
+    assert list(out) == [-1, 0, -1, 0, -1, 0, 0]
+    with pytest.raises(ValueError, match="points"):
+        winding_at(corners, queries.astype(np.int64), out)
+    with pytest.raises(ValueError, match="points"):
+        winding_at(corners, queries, out.astype(np.float64))
+    with pytest.raises(ValueError, match="too many cells"):
+        winding_at(corners, np.array([[0.0, 0, 0], [2.0 ** 32, 2.0 ** 32, 0]]),
+                   np.zeros(2, dtype=np.int64))
