@@ -109,7 +109,8 @@ class SelfCrossing:
         inside out). Such a point borders a region wound other than 0 or 1 times, so only the
         points within :attr:`box` grown by :data:`BOX_MARGIN` ray spacings are computed: the
         box holds the rays' stretches, and a tilted or thin part of the region reaches past the
-        nearest ray (measured on touching hairpin legs: up to 1.9 spacings); what lies further
+        nearest ray (measured on touching, rotated hairpin legs: 45 of 2972 such nodes lay more
+        than 1.5 spacings beyond the box, 1 more than 2.5, none more than 4); what lies further
         is missed, as a crossing narrower than the spacing is by the volume."""
         from segsnake._scan import winding_at
 
