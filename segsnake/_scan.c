@@ -52,6 +52,27 @@ static int edge(const double *p, const double *q, double x, double y, double sig
     return (s > 0) || (s == 0 && takes);
 }
 
+/* The sign of the projection of triangle a, b, c on (x, y): +1 counter-clockwise (the face's
+ * normal along +z), -1 clockwise, 0 without area (it crosses no ray). */
+static double facing(const double *a, const double *b, const double *c)
+{
+    double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+    return area > 0 ? 1.0 : (area < 0 ? -1.0 : 0.0);
+}
+
+/* Whether the ray at (x, y) meets triangle a, b, c (of projection sign `sign`, not 0), and the
+ * height z where it does. */
+static int meets(const double *a, const double *b, const double *c, double sign, double x,
+                 double y, double *z)
+{
+    double wa, wb, wc;
+    if (!edge(b, c, x, y, sign, &wa) || !edge(c, a, x, y, sign, &wb) ||
+        !edge(a, b, x, y, sign, &wc))
+        return 0;
+    *z = (wa * a[2] + wb * b[2] + wc * c[2]) / (wa + wb + wc);
+    return 1;
+}
+
 typedef int (*visit_fn)(void *ctx, Py_ssize_t i, Py_ssize_t j, double z, int up);
 
 /* Every crossing of the triangles (f, 3 vertices (x, y, z)) with the rays 0 <= i < nx,
@@ -61,10 +82,9 @@ static int scan(const double *tri, Py_ssize_t f, Py_ssize_t nx, Py_ssize_t ny, v
 {
     for (Py_ssize_t t = 0; t < f; t++) {
         const double *a = tri + 9 * t, *b = a + 3, *c = a + 6;
-        double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
-        if (area == 0)
+        double sign = facing(a, b, c);
+        if (sign == 0)
             continue; /* a projection without area crosses no ray */
-        double sign = area > 0 ? 1.0 : -1.0;
         double x0 = ceil(fmin(a[0], fmin(b[0], c[0]))), x1 = floor(fmax(a[0], fmax(b[0], c[0])));
         double y0 = ceil(fmin(a[1], fmin(b[1], c[1]))), y1 = floor(fmax(a[1], fmax(b[1], c[1])));
         if (x1 < 0 || y1 < 0 || x0 > (double)(nx - 1) || y0 > (double)(ny - 1))
@@ -74,13 +94,9 @@ static int scan(const double *tri, Py_ssize_t f, Py_ssize_t nx, Py_ssize_t ny, v
         Py_ssize_t j1 = y1 < (double)(ny - 1) ? (Py_ssize_t)y1 : ny - 1;
         for (Py_ssize_t i = i0; i <= i1; i++)
             for (Py_ssize_t j = j0; j <= j1; j++) {
-                double wa, wb, wc;
-                if (!edge(b, c, (double)i, (double)j, sign, &wa) ||
-                    !edge(c, a, (double)i, (double)j, sign, &wb) ||
-                    !edge(a, b, (double)i, (double)j, sign, &wc))
-                    continue;
-                double z = (wa * a[2] + wb * b[2] + wc * c[2]) / (wa + wb + wc);
-                if (visit(ctx, i, j, z, (int)sign))
+                double z;
+                if (meets(a, b, c, sign, (double)i, (double)j, &z) &&
+                    visit(ctx, i, j, z, (int)sign))
                     return -1;
             }
     }
@@ -282,16 +298,8 @@ static int winding_points(const double *tri, Py_ssize_t f, const double *pts, Py
         long long w = 0;
         for (Py_ssize_t e = start[cell]; e < start[cell + 1]; e++) {
             const double *a = tri + 9 * list[e], *b = a + 3, *c = a + 6;
-            double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
-            if (area == 0)
-                continue;
-            double sign = area > 0 ? 1.0 : -1.0;
-            double wa, wb, wc;
-            if (!edge(b, c, p[0], p[1], sign, &wa) || !edge(c, a, p[0], p[1], sign, &wb) ||
-                !edge(a, b, p[0], p[1], sign, &wc))
-                continue;
-            double z = (wa * a[2] + wb * b[2] + wc * c[2]) / (wa + wb + wc);
-            if (z > p[2])
+            double sign = facing(a, b, c), z;
+            if (sign != 0 && meets(a, b, c, sign, p[0], p[1], &z) && z > p[2])
                 w += (long long)sign;
         }
         out[k] = w;

@@ -19,6 +19,7 @@ up with :class:`SumEnergy`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -295,20 +296,24 @@ class CrossingPenalty:
     weight: float = 1.0
     order: int = 4
 
-    def __post_init__(self) -> None:
-        self.basis, self.weights = self.model.quadrature(self.order)
+    @cached_property
+    def _grid(self):
+        # (built once a crossing appears: most stages never need it)
+        return self.model.quadrature(self.order)
 
     def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
         from segsnake.rasterize import SelfCrossing
 
-        crossing = SelfCrossing(self.model.with_params(params))
+        surface = self.model.with_params(params)
+        crossing = SelfCrossing(surface)
         if crossing.volume == 0:
             return 0.0, np.zeros_like(params)
-        s, su, sv = self.basis.evaluate(self.model.control_points(params))
+        basis, weights = self._grid
+        s, su, sv = basis.evaluate(surface.control_points())
         n = self.model.orientation * np.cross(sv, su)
         k_out = crossing.outside_windings(s.reshape(-1, 3), n.reshape(-1, 3)).reshape(s.shape[:2])
-        g = (self.weights * np.sign(k_out))[..., None] * n
+        g = (weights * np.sign(k_out))[..., None] * n
         zero = np.zeros_like(g)
-        grad_C = self.basis.adjoint(g, zero, zero)
+        grad_C = basis.adjoint(g, zero, zero)
         return self.weight * crossing.volume, \
             self.weight * self.model.grid_gradient_to_params(grad_C)
