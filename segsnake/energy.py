@@ -65,16 +65,13 @@ class FluxTerm:
     """``weight * integral_V h dV`` through a lookup ``G`` (see the module docstring).
 
     For a cylinder, ``closed=False`` integrates only the lateral surface. That is the
-    closed-surface flux when the end caps are perpendicular to x, i.e. the cylinder's axis is
-    perpendicular to x; :func:`segsnake.frames.flux_frame` picks a frame where it is (a
-    permutation of the array axes, or a rotated, resampled grid). ``closed=True`` adds the two
-    end caps, the planar fans ``tau(u, s) = c + s (sigma(u, e) - c)`` (``e`` = 0 and 1, ``c``
+    closed-surface flux only when the end caps are perpendicular to x, i.e. the cylinder's axis
+    is perpendicular to x. ``closed=True`` (every stage of the pipeline) adds the two end caps, the planar fans ``tau(u, s) = c + s (sigma(u, e) - c)`` (``e`` = 0 and 1, ``c``
     the ring's mean point) with which the volume, the mask and the mesh close the tube: the
     surface is then closed in any orientation, and the flux is the volume integral whatever the
     frame (design.md, "A closed cylinder"). Each cap is a surface of the same control points,
     integrated with ``order_u`` nodes per knot interval around and :func:`cap_nodes` nodes
-    across. (With the edge stages, closing the caps made the capture stop about 4 mm inside the
-    Table 7.2 wall: they keep the open tube in its frame.)
+    across.
 
     Parameters
     ----------
@@ -185,7 +182,7 @@ class SumEnergy:
 
 @dataclass
 class AxialTension:
-    """``weight * |c1 - c0|``: a pull between the end rings' centres of an open cylinder.
+    """``weight * |c1 - c0|``: a pull between the end rings' centres of a cylinder.
 
     ``c0`` and ``c1`` are the mean points of the rings ``sigma(u, 0)`` and ``sigma(u, 1)``
     (over u: the mean of the control grid's rows weighted by the axial basis at v = 0 and 1,

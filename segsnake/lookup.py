@@ -190,6 +190,7 @@ class Lookup:
     @classmethod
     def from_field(
         cls, f: np.ndarray, spacing: Sequence[float], *, divergence_of_gradient: bool = True,
+        pad: int = 0,
     ) -> "Lookup":
         """Lookup for the flux of ``grad f`` (or the volume integral of ``f``).
 
@@ -203,11 +204,23 @@ class Lookup:
             True (default): ``G = f_x + cumint(f_yy + f_zz)``, so the surface
             integral of ``G dy^dz`` is the flux of ``grad f`` (``dG/dx = lap f``).
             False: ``G = cumint(f)``, so it is the volume integral of ``f``.
+        pad : int
+            The lookup of a grid grown by this many voxels on every side, where the density
+            (``lap f``, or ``f``) is zero: sample it at points shifted by ``pad`` voxels. With
+            the density given outright, ``G = cumint(lap f)`` (its x part is the integral of
+            ``f_xx``, not ``f_x`` itself).
         """
         sp = _check_spacing(spacing)
         f = np.asarray(f)
         if f.ndim != 3:
             raise ValueError(f"field must be 3D, got shape {f.shape}")
+        if pad:
+            if divergence_of_gradient:
+                density = sum(thread_map(lambda job: _deriv(f, *job),
+                                         [(d, sp[d], 2) for d in range(3)]))
+            else:
+                density = f
+            return cls._from_parts(None, np.pad(density, pad), sp)
         if divergence_of_gradient:
             base, integrand, f_zz = thread_map(lambda job: _deriv(f, *job),
                                                [(0, sp[0], 1), (1, sp[1], 2), (2, sp[2], 2)])

@@ -45,7 +45,6 @@ from segsnake.distance import distance_to, distance_within
 from segsnake.moments import mask_moments
 from segsnake.energy import AxialTension, CrossingPenalty, FluxTerm, RingBarrier, SumEnergy
 from segsnake.errors import ConfigError, SegmentationError
-from segsnake.frames import flux_frame
 from segsnake.optimize import MIN_VOLUME_FRACTION, minimize_energy
 from segsnake.parallel import gaussian_filter, pieces, thread_map
 from segsnake.regularize import BendingRegularizer
@@ -74,6 +73,10 @@ MIN_EDGE_SUPPORT = 0.15
 NODE_SPACING = 4.0
 CAPTURE_NODE_SPACING = 0.75
 INNER_CAPTURE_NODE_SPACING = 2.0
+#: The capture runs again at this fraction of its smoothing width (:meth:`_Run.capture`): at
+#: 1.5 mm it stops about 4 mm inside a hollow tube's mid-surface, where the refinement's ridge
+#: term is flat and its tension shortened the tube instead (docs/benchmarks.md, session 15).
+CAPTURE_CONTINUATION = 0.5
 #: ... at most this many per knot interval ...
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
@@ -347,51 +350,22 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     if region_energy(config):
         return _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                region_params, on_boundary, init_record)
-    # The edge stages' record: the first run's initial surface chose the frame and the edges
-    # discarded; the rest is in the frame's coordinates (_segment).
+    # The edge stages' record: the first run's initial surface chose the edges discarded.
     from segsnake.region import RegionParams
 
     options = _restart_options(image, sp, config, region_params or RegionParams())
     record, record_use = _usable_restart(init_record, options, model) if on_boundary \
         else (None, None)
     first = model if record is None else model_from_dict(record["initial"])
-    frame = flux_frame(first, sp, image.shape)
-    if frame is None:
-        res = _segment(image, sp, config, model, progress, extra_energy, init_s,
-                       on_boundary=on_boundary, record=record, first=first)
-        return _with_record(res, options, first, on_boundary, record_use)
-    # Work in the frame whose first axis (the lookups' integration axis) runs across the
-    # cylinder: there its open ends' missing caps carry no flux (segsnake.frames).
-    t0 = time.perf_counter()
-    framed = frame.image_in(image, sp)
-    frame_s = time.perf_counter() - t0
-    seed = None if config.seed_point is None else frame.index_in(config.seed_point, sp)
-    extra = None if extra_energy is None else \
-        (lambda m: frame.energy_in(extra_energy(frame.model_out(m)), m.is_vector))
-    # The defaults that depend on the voxel size are the original image's.
-    scale = config.scale if config.scale is not None else _default_scale(sp)
-    res = _segment(framed, frame.spacing, config.replace(seed_point=seed, scale=scale),
-                   frame.model_in(model), progress, extra, init_s, smooth_mm=max(sp),
-                   mask=False, on_boundary=on_boundary, record=record,
-                   first=frame.model_in(first))
-    del framed
-    res.model = frame.model_out(res.model)
-    res.init_model = model
-    res.timings["frame_s"] = frame_s
-    # The mask is rasterized on the original grid, whatever the frame.
-    t0 = time.perf_counter()
-    res.mask = _final_mask(res.model, image.shape, sp)
-    res.timings["mask_s"] = time.perf_counter() - t0
-    if frame.perm is not None:
-        res.settings["integration_axis"] = int(frame.perm[0])
-    res.settings["integration_direction"] = frame.integration_direction
+    res = _segment(image, sp, config, model, progress, extra_energy, init_s,
+                   on_boundary=on_boundary, record=record, first=first)
     return _with_record(res, options, first, on_boundary, record_use)
 
 
 def _with_record(res: SegmentResult, options: dict[str, Any], first: SplineSurface,
                  on_boundary: bool, record_use: str | None) -> SegmentResult:
     """An edge-stage result with its restart record completed: the options, and the initial
-    surface (the volume's coordinates) its frame and discards came from."""
+    surface its discards came from."""
     res.settings["restart"] = {**options, "initial": first.to_dict(),
                                **res.settings["restart"]}
     if on_boundary:
@@ -743,14 +717,10 @@ def _final_mask(model: SplineSurface, shape, spacing) -> NDArray[np.bool_]:
 
 
 def _segment(image, sp, config, model, progress, extra_energy, init_s,
-             smooth_mm: float | None = None, mask: bool = True,
              on_boundary: bool = False, record: dict | None = None,
              first: SplineSurface | None = None) -> SegmentResult:
-    """:func:`segment_volume` from the initial snake on, in the frame of ``image``
-    (``smooth_mm``: the edge map's smoothing, default the largest voxel size; ``mask=False``:
-    the caller rasterizes the result on another grid, ``SegmentResult.mask`` is None;
-    ``on_boundary``: the snake is a saved result, no enclosed-edge discard and no first
-    capture).
+    """:func:`segment_volume` from the initial snake on, with the edge stages (``on_boundary``:
+    the snake is a saved result, no enclosed-edge discard and no first capture).
 
     ``record`` (with ``on_boundary``): the saved result's restart record, usable here. Then the
     edges are discarded as the first run did, from its initial surface ``first``; the
@@ -758,7 +728,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
     starting surface, an inner face's band placed around its recorded sheet; the stages before
     the last are skipped, and the last runs on its recorded reference and order: a stationary
     result comes back unchanged (:func:`_run_stage`). The last stage ends stationary, and what
-    it needs is returned in ``settings["restart"]`` (in this frame's coordinates)."""
+    it needs is returned in ``settings["restart"]``."""
     from segsnake.features import auto_levels, edge_map, hysteresis_threshold
     from segsnake.rasterize import rasterize
 
@@ -775,7 +745,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
     # Thin dark sheets (the CSF around a brain in T1) are thin bright sheets of -image.
     dark_sheet = sheet and config.polarity == "dark"
     em = edge_map(-image if dark_sheet else image, sp, mode=config.feature, scale_mm=scale,
-                  threshold=config.threshold, seed=seed, smooth_mm=smooth_mm)
+                  threshold=config.threshold, seed=seed)
     # The initial surface lies inside the object (that is the contract of an initialization):
     # edges it encloses are internal structures (ventricles, vessels), never the boundary.
     # (A saved result encloses its own boundary's edges: nothing is discarded for it, unless
@@ -842,7 +812,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
         derivs.update({o: sign * em.gradient[..., d]
                        for d, o in enumerate([(1, 0, 0), (0, 1, 0), (0, 0, 1)])})
         face = edge_map(image, sp, mode="edge", scale_mm=scale, threshold=None, region=band,
-                        smooth_mm=smooth_mm, _derivs=derivs)
+                        _derivs=derivs)
         del derivs
         pol = 1 if config.polarity == "dark" else -1  # +1: the object is brighter than the sheet
         # steps that face the sheet
@@ -862,7 +832,7 @@ def _segment(image, sp, config, model, progress, extra_energy, init_s,
             f"no boundary found: the final surface lies on almost no detected edge (mean edge "
             f"strength {support:.2f}, expected about 1); check the initialization or --scale")
     t0 = time.perf_counter()
-    mask = _final_mask(model, shape, sp) if mask else None
+    mask = _final_mask(model, shape, sp)
     run.timings["mask_s"] = time.perf_counter() - t0
     report("done", 1.0)
     settings = {"edge_support": support, "scale_mm": scale, "smooth_mm": em.smooth_mm,
@@ -945,31 +915,38 @@ class _Run:
         out towards the edges from any distance, whatever the object's thickness (a wide Gaussian
         ridge collapses snakes in objects thinner than its width). The pull is the curvature of
         the distance's level sets: strong in front of round edges, weak in front of large flat
-        walls. Its minimum lies about two smoothing widths inside the edge; the refinement takes
-        it from there. (A region integral of ``r . grad(-d)``, r radial, pulls with unit strength
-        in front of flat walls too, but turns negative in the concave necks of lobed shapes and
-        folds them.)
+        walls. Its minimum lies about two smoothing widths inside the edge: so it runs again at
+        :data:`CAPTURE_CONTINUATION` times its width from where it stopped (continuation in
+        scale), which ends within the refinement's reach. (A region integral of ``r .
+        grad(-d)``, r radial, pulls with unit strength in front of flat walls too, but turns
+        negative in the concave necks of lobed shapes and folds them.)
+
+        Beyond the field of view ``lap(-d)`` is zero (:data:`FOV_PAD`; no edge is known there):
+        a tube that leaves the volume feels nothing past the face, and its tension ends it there.
         """
         from segsnake.lookup import Lookup
 
         if not edges.any():
             raise SegmentationError("no edges found outside the initial surface")
         t0 = time.perf_counter()
-        sigma = max(smooth_mm, 1.5)
         dist = distance_to(edges, self.sp)
-        f_d = gaussian_filter(np.negative(dist, out=dist), [sigma / x for x in self.sp],
-                              mode="nearest", copy=False)
-        del dist
-        lookup = Lookup.from_field(f_d, self.sp)
-        del f_d
         self.timings["lookup_s"] += time.perf_counter() - t0
-        # -d varies on the scale of sigma only near edges and medial axes: nodes 2 sigma apart.
-        # The capture surface crosses the features of -d on its way out, so its a-priori
-        # quadrature is fine from the start: a coarse first round can run into a spurious
-        # minimum that the finer rounds do not leave (measured on the PD brain: -28311 against
-        # -51907, Dice 0.53).
-        return self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup, sigma,
-                           2 * sigma, tol=1e-4, node_spacing=node_spacing)
+        first = max(smooth_mm, 1.5)
+        for sigma in (first, CAPTURE_CONTINUATION * first):
+            t0 = time.perf_counter()
+            f_d = gaussian_filter(-dist, [sigma / x for x in self.sp], mode="nearest", copy=False)
+            lookup = _Shifted(Lookup.from_field(f_d, self.sp, pad=FOV_PAD),
+                              FOV_PAD * np.asarray(self.sp))
+            del f_d
+            self.timings["lookup_s"] += time.perf_counter() - t0
+            # -d varies on the scale of sigma only near edges and medial axes: nodes 2 sigma
+            # apart. The capture surface crosses the features of -d on its way out, so its
+            # a-priori quadrature is fine from the start: a coarse first round can run into a
+            # spurious minimum that the finer rounds do not leave (measured on the PD brain:
+            # -28311 against -51907, Dice 0.53).
+            model = self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup,
+                                sigma, 2 * sigma, tol=1e-4, node_spacing=node_spacing)
+        return model
 
     def refine(self, model, em, out: NDArray, feature_mm: float, tol: float | None = None,
                stationary: bool = False, resume=None):
@@ -983,7 +960,10 @@ class _Run:
 
         t0 = time.perf_counter()
         along = sum(out[..., d] * np.gradient(em.f, h, axis=d) for d, h in enumerate(self.sp))
-        lookup = Lookup.from_field(along.astype(np.float32), self.sp, divergence_of_gradient=False)
+        # (zero beyond the field of view: no edge is known there; see capture)
+        lookup = _Shifted(Lookup.from_field(along.astype(np.float32), self.sp,
+                                            divergence_of_gradient=False, pad=FOV_PAD),
+                          FOV_PAD * np.asarray(self.sp))
         del along
         self.timings["lookup_s"] += time.perf_counter() - t0
         return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol,
@@ -1316,7 +1296,7 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False,
     """The stage's energy; its first term is the image's :class:`FluxTerm`. A region stage's
     prices the volume its surface wraps other than once at ``crossing_weight`` per mm^3
     (:class:`CrossingPenalty`)."""
-    flux = FluxTerm(model, lookup, weight=weight, order=order, closed=region)
+    flux = FluxTerm(model, lookup, weight=weight, order=order, closed=True)
     terms = [flux]
     # (measured once: the terms' weights all scale with them)
     area, r = abs(model.area(order=4)), _model_radius(model)
@@ -1343,8 +1323,9 @@ def _stage_energy(model, lookup, weight, order, extra_energy, region=False,
         slab = per_area * area / rings
         terms.append(RingBarrier(model, model.params, weight=slab))
     if model.kind == "cylinder" and not region:
-        # The open ends feel no flux: without tension they drift past the ends of the
-        # structure. Tension makes a tube's length without edge support cost a fraction of what
+        # Past the end of a sheet (a hollow tube's open end) or the field of view the edge
+        # map is empty: the caps feel no flux there, and without tension the ends drift on.
+        # Tension makes a tube's length without edge support cost a fraction of what
         # surface on an edge gains (the edge map peaks at about 1 per mm^2): CYLINDER_TENSION
         # per mm^2 of lateral surface, as a pull along the axis only. (Surface tension, the
         # area, also presses on the whole lateral surface with CYLINDER_TENSION / radius, which

@@ -178,107 +178,59 @@ def test_hollow_cylinder_of_table_7_2(std):
     assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
 
 
-def test_cylinder_along_x_is_integrated_across_its_axis():
-    # Along x the lookup's integration axis would run through the open ends (whose caps are not
-    # integrated; measured before: "no boundary found"). The pipeline turns the frame instead.
+def test_cylinder_along_x_is_closed_by_its_caps():
+    # Along x the lookup's integration axis runs through the tube's ends: an open tube's flux
+    # missed its caps' (measured before: "no boundary found", until a turned frame put x
+    # across it). Closed by its caps, the flux is the volume integral in any orientation.
     ph = make_phantom("hollow-cylinder", seed=1, std=50, axis=(1.0, 0.0, 0.0))
     res = _segment(ph, 12, feature="surface")
-    assert res.settings["integration_axis"] in (1, 2)  # across the tube, whichever of y and z
-    assert res.mask.shape == ph.truth.shape
+    assert "integration_direction" not in res.settings
     assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
     c, axis = _center_and_axis(res.model)
-    assert abs(axis[0]) > 10 * max(abs(axis[1]), abs(axis[2]))  # the snake came back along x
+    assert abs(axis[0]) > 10 * max(abs(axis[1]), abs(axis[2]))  # the snake stayed along x
+
+
+def test_short_oblique_tube_from_its_end_clicks_ends_at_its_rims():
+    # A short hollow tube along (-0.63, -0.32, -0.70), started to 15 % of its length from each
+    # end (bench_tubes.py's end-point click): with open ends in a rotated frame the capture
+    # flared the ends to 1.7 x the radius and ran them 30 mm past the rims, and the refinement
+    # stopped there ("no boundary found"; perturbed by 1e-12, Dice 0.63). Closed by its caps,
+    # the capture stops inside the rims.
+    axis = (-0.6323984977372045, -0.32285622772920797, -0.7041562300201516)
+    ph = make_phantom("hollow-cylinder", seed=1, std=50.0, length=70.0, radius=20.0, axis=axis)
+    g = ph.params["geometry"]
+    a0, a1 = np.asarray(g["axis_start_mm"]), np.asarray(g["axis_end_mm"])
+    init = {"shape": "cylinder", "axis_start": list(a0 + 0.15 * (a1 - a0)),
+            "axis_end": list(a1 - 0.15 * (a1 - a0)), "radius": 10.0}
+    res = segment_volume(ph.image, ph.spacing,
+                         SegmentConfig.from_mapping({**init, "feature": "surface"}))
+    assert dice(res.mask, ph.truth.astype(bool)) >= 0.95
+    c0, along, radius = res.model.axis_and_radius()
+    assert abs(np.linalg.norm(along) - 70.0) < 5.0 and abs(radius - 20.0) < 1.5
+
+
+def test_tube_leaving_the_volume_ends_on_its_faces():
+    # A long hollow tube runs through the volume's faces: beyond them the edge stages' densities
+    # are zero (no edge is known there), and the tension ends the tube on the faces (with the
+    # lookup clamped, the face's density went on outside and the capture ran a tube along
+    # (0.44, -0.85, -0.29) out of the volume).
+    axis = (0.44, -0.85, -0.29)
+    ph = make_phantom("hollow-cylinder", seed=5, std=50.0, axis=axis)
+    res = _segment(ph, 20, feature="surface")
+    assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
+    lo, hi = np.zeros(3), (np.asarray(ph.image.shape) - 1) * np.asarray(ph.spacing)
+    for ring in res.model.end_rings(32):  # each end ring reaches a face of the volume
+        assert min(np.min(ring - lo), np.min(hi - ring)) < 1.0
 
 
 @pytest.mark.slow
-def test_oblique_cylinder_is_segmented_in_a_rotated_frame():
+def test_oblique_cylinder_from_a_perturbed_start():
     # Along (-0.72, 0.56, 0.41) every array axis leaves the caps tilted by 24 degrees or more;
-    # in permuted frames only, this short tube gave Jaccard 0.67.
+    # with open ends in permuted frames only, this short tube gave Jaccard 0.67.
     axis = (-0.6204749, 0.48984205, 0.35688701)
     ph = make_phantom("hollow-cylinder", seed=3, std=50, axis=axis, length=70.0, radius=20.0)
     res = _segment(ph, 13, feature="surface")
-    assert "integration_axis" not in res.settings
-    d = np.asarray(res.settings["integration_direction"])
-    start_axis = _center_and_axis(res.init_model)[1]  # the frame comes from the (perturbed) start
-    assert abs(d @ start_axis) < 1e-3 * np.linalg.norm(start_axis)
-    assert res.mask.shape == ph.truth.shape
     assert jaccard(res.mask, ph.truth.astype(bool)) >= 0.94
-
-
-def test_flux_frame_and_energies_in_the_turned_frame(monkeypatch):
-    from segsnake import frames
-    from segsnake.frames import OBLIQUE_TOL, flux_frame
-    from segsnake.priors import AffinePrior
-    from segsnake.surfaces import CylinderModel, SphereModel
-
-    monkeypatch.setattr(frames, "MAX_VOXEL_RATIO", 100.0)  # this grid is tiny
-
-    sp, shape = (1.0, 0.8, 1.5), (20, 30, 16)
-    assert flux_frame(SphereModel.unit(5, 5), sp, shape) is None
-    along = {(0, 0, 1): None, (0, 1, 0): None, (1, 0, 0): (1, 2, 0), (1, 1, 0.05): (2, 0, 1),
-             (1, 0.05, 1): (1, 2, 0)}
-    for axis, perm in along.items():
-        frame = flux_frame(CylinderModel.from_axis([0, 0, 0], axis, 1.0, m1=6, m2=3), sp, shape)
-        assert (frame if frame is None else frame.perm) == perm
-    rng = np.random.default_rng(0)
-    for axis in [(1, 0, 0), (1, 1, 1), (2, -1, 0.5)]:  # a permutation, then two rotations
-        model = CylinderModel.from_axis([1, 2, 3], np.add([1, 2, 3], np.multiply(axis, 4)), 2.0,
-                                        m1=6, m2=3)
-        model = model.with_params(model.params + 0.1 * rng.normal(size=model.params.shape))
-        frame = flux_frame(model, sp, shape)
-        assert (frame.perm is None) == (min(np.abs(axis)) / np.linalg.norm(axis) > OBLIQUE_TOL)
-        assert np.allclose(frame.M.T @ frame.M, np.eye(3)) and np.isclose(np.linalg.det(frame.M), 1)
-        inside = frame.model_in(model)
-        # The cylinder's axis runs across the frame's first (integration) axis.
-        r0, r1 = inside.end_rings(24)
-        assert abs((r1 - r0).mean(axis=0)[0]) < 1e-9 * np.linalg.norm(r1 - r0) or frame.perm
-        assert np.allclose(frame.model_out(inside).params, model.params)
-        assert np.isclose(inside.volume(), model.volume())  # a rotation keeps the orientation
-        prior = AffinePrior(model, CylinderModel.unit(6, 3), weight=1.0, space="scaling")
-        v, g = prior.value_and_grad(model.params)
-        vt, gt = frame.energy_in(prior, model.is_vector).value_and_grad(inside.params)
-        assert abs(vt - v) < 1e-10 * abs(v) and np.allclose(gt, g @ frame.M)
-    # A rotated grid too large for the image: the permuted frame instead.
-    monkeypatch.setattr(frames, "MAX_VOXEL_RATIO", 1.0)
-    fallback = flux_frame(model, sp, shape)
-    assert fallback is None or fallback.perm is not None
-
-
-def test_rotated_frame_resamples_the_image(monkeypatch):
-    from segsnake import frames
-    from segsnake.frames import flux_frame
-    from segsnake.surfaces import CylinderModel
-
-    monkeypatch.setattr(frames, "MAX_VOXEL_RATIO", 100.0)
-    monkeypatch.setattr(frames, "MARGIN_MM", 50.0)  # across the tube: the whole volume
-    sp, shape = (1.0, 0.8, 1.5), (20, 30, 16)
-    frame = flux_frame(CylinderModel.from_axis([5, 5, 5], [15, 20, 20], 3.0), sp, shape)
-    assert frame.perm is None and frame.spacing == (0.8, 0.8, 0.8)
-    # A linear image is reproduced exactly by trilinear resampling, wherever a frame voxel
-    # falls inside the volume; the frame's box holds the whole volume.
-    w = np.array([0.3, -0.2, 0.7])
-    idx = np.indices(shape).reshape(3, -1).T * np.asarray(sp)
-    image = (idx @ w).reshape(shape)
-    framed = frame.image_in(image, sp)
-    x = np.indices(frame.shape).reshape(3, -1).T * np.asarray(frame.spacing)
-    orig = x @ frame.M.T + frame.t
-    ext = (np.asarray(shape) - 1) * np.asarray(sp)
-    inside = np.all((orig >= -1e-9) & (orig <= ext + 1e-9), axis=1)
-    assert inside.sum() > 0.9 * np.prod(ext) / 0.8 ** 3
-    assert np.allclose(framed.reshape(-1)[inside], (orig @ w)[inside], atol=1e-4)
-    # Each corner of the volume lies in the frame's box.
-    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) * ext
-    q = (corners - frame.t) @ frame.M
-    assert np.all(q >= -1e-9) and np.all(q <= (np.asarray(frame.shape) - 1) * 0.8 + 1e-9)
-    assert frame.index_in([0, 0, 0], sp) == pytest.approx(list(-frame.M.T @ frame.t / 0.8))
-    # With the default reach the box is cut to 3 radii + 10 mm around the axis.
-    monkeypatch.setattr(frames, "MARGIN_MM", 10.0)
-    cut = flux_frame(CylinderModel.from_axis([5, 5, 5], [15, 20, 20], 3.0), sp, shape)
-    assert cut.shape[2] == frame.shape[2] and max(cut.shape[:2]) * 0.8 <= 2 * 19.0 + 0.8
-    sub_image = cut.image_in(image, sp)
-    assert np.allclose(sub_image, frame.image_in(image, sp)[
-        tuple(slice(int(round(o)), int(round(o)) + n) for o, n in
-              zip(frame.M.T @ (cut.t - frame.t) / 0.8, cut.shape))], atol=1e-4)
 
 
 @pytest.mark.slow
