@@ -215,11 +215,14 @@ class Lookup:
         if f.ndim != 3:
             raise ValueError(f"field must be 3D, got shape {f.shape}")
         if pad:
+            density = f
             if divergence_of_gradient:
-                density = sum(thread_map(lambda job: _deriv(f, *job),
-                                         [(d, sp[d], 2) for d in range(3)]))
-            else:
-                density = f
+                # (summed in place: no more volumes at once than the unpadded build's three)
+                density, f_yy, f_zz = thread_map(lambda job: _deriv(f, *job),
+                                                 [(d, sp[d], 2) for d in range(3)])
+                density += f_yy
+                density += f_zz
+                del f_yy, f_zz
             return cls._from_parts(None, np.pad(density, pad), sp)
         if divergence_of_gradient:
             base, integrand, f_zz = thread_map(lambda job: _deriv(f, *job),

@@ -279,6 +279,46 @@ def test_divergence_theorem_on_spline_sphere_model(lookups):
 
 
 
+def test_padded_lookup_has_no_density_beyond_the_grid():
+    # pad: the density (lap f, or f) is zero on the pad voxels around the grid, and sampled
+    # there at points shifted by the pad: inside it is the same flux (the x part integrated from
+    # f_xx instead of taken as f_x), outside none, where the clamped lookup continues the
+    # grid's last planes outwards.
+    g = _grid()
+    pad = 2
+    shift = pad * np.asarray(SPACING)
+    f = blobs(g)
+    plain = Lookup.from_field(f, SPACING)
+    padded = Lookup.from_field(f, SPACING, pad=pad)
+
+    class Shifted:
+        def sample(self, points):
+            return padded.sample(np.asarray(points) + shift)
+
+    for center, radii, rot in SURFACES:
+        center = np.asarray(center)
+        vol = ellipsoid_volume_integral(blobs_lap, center, radii, rot)
+        assert abs(ellipsoid_flux(Shifted(), center, radii, rot) - vol) <= 2e-3 * abs(vol)
+    # A field whose Laplacian is 2 everywhere: a ball inside holds 2 x its volume; a ball past
+    # the grid's +y face none padded, and clamped far from none (the face's planes go on).
+    quad = g[..., 1] ** 2
+    extent = (np.asarray(f.shape) - 1) * np.asarray(SPACING)
+    inside = extent / 2
+    outside = inside + np.array([0.0, extent[1] / 2 + 6.0, 0.0])
+    ball = 4 / 3 * np.pi * 3.0 ** 3
+    lk = Lookup.from_field(quad, SPACING, pad=pad)
+
+    class ShiftedQuad:
+        def sample(self, points):
+            return lk.sample(np.asarray(points) + shift)
+
+    eye = np.eye(3)
+    assert abs(ellipsoid_flux(ShiftedQuad(), inside, (3.0, 3.0, 3.0), eye) - 2 * ball) < 1e-3 * ball
+    assert abs(ellipsoid_flux(ShiftedQuad(), outside, (3.0, 3.0, 3.0), eye)) < 1e-3 * ball
+    clamped = Lookup.from_field(quad, SPACING)
+    assert abs(ellipsoid_flux(clamped, outside, (3.0, 3.0, 3.0), eye)) > ball
+
+
 def test_a_density_written_in_place_gives_the_same_lookup():
     # Lookup.volume_integral: the density is written into the coefficients' own array and
     # integrated there (the region stages' lookups, issue 18): the same bits as from a
