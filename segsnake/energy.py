@@ -66,10 +66,11 @@ class FluxTerm:
 
     For a cylinder, ``closed=False`` integrates only the lateral surface. That is the
     closed-surface flux only when the end caps are perpendicular to x, i.e. the cylinder's axis
-    is perpendicular to x. ``closed=True`` (every stage of the pipeline) adds the two end caps, the planar fans ``tau(u, s) = c + s (sigma(u, e) - c)`` (``e`` = 0 and 1, ``c``
-    the ring's mean point) with which the volume, the mask and the mesh close the tube: the
-    surface is then closed in any orientation, and the flux is the volume integral whatever the
-    frame (design.md, "A closed cylinder"). Each cap is a surface of the same control points,
+    is perpendicular to x. ``closed=True`` (every stage of the pipeline) adds the two end caps,
+    the planar fans ``tau(u, s) = c + s (sigma(u, e) - c)`` (``e`` = 0 and 1, ``c`` the ring's
+    mean point) with which the volume, the mask and the mesh close the tube: the surface is then
+    closed in any orientation, and the flux is the volume integral whatever the frame
+    (docs/design.md, "Closed cylinders"). Each cap is a surface of the same control points,
     integrated with ``order_u`` nodes per knot interval around and :func:`cap_nodes` nodes
     across.
 

@@ -43,6 +43,9 @@ plane, both with ``dG/dx = 0``: outside the box ``div grad f`` is taken to be
 that pokes out through an x face. Beyond a y or z face the face values are
 continued (``dG/dy`` or ``dG/dz = 0``). For every surface the flux is
 exactly the volume integral of ``dG/dx`` of this continued function.
+``Lookup.from_field(..., pad=n)`` instead puts the grid in a box ``n`` voxels
+larger on every side where the density is zero (sampled at points shifted by
+``n`` voxels): a surface beyond the grid then holds no density at all.
 """
 
 from __future__ import annotations
@@ -215,15 +218,17 @@ class Lookup:
         if f.ndim != 3:
             raise ValueError(f"field must be 3D, got shape {f.shape}")
         if pad:
-            density = f
-            if divergence_of_gradient:
-                # (summed in place: no more volumes at once than the unpadded build's three)
-                density, f_yy, f_zz = thread_map(lambda job: _deriv(f, *job),
-                                                 [(d, sp[d], 2) for d in range(3)])
-                density += f_yy
-                density += f_zz
-                del f_yy, f_zz
-            return cls._from_parts(None, np.pad(density, pad), sp)
+            # The density written straight into the padded coefficients' array (no padded copy).
+            def write(values: np.ndarray) -> None:
+                values[...] = 0.0
+                inner = values[(slice(pad, -pad),) * 3]
+                if not divergence_of_gradient:
+                    inner[...] = f
+                    return
+                for d in range(3):
+                    inner += _deriv(f, d, sp[d], 2)
+
+            return cls.volume_integral(tuple(n + 2 * pad for n in f.shape), sp, write)
         if divergence_of_gradient:
             base, integrand, f_zz = thread_map(lambda job: _deriv(f, *job),
                                                [(0, sp[0], 1), (1, sp[1], 2), (2, sp[2], 2)])

@@ -24,8 +24,8 @@ How the edge stages get the surface onto the boundary (design.md, "Where the min
    CSF), capture and refinement again on the steps just inside the sheet.
 
 Every stage minimizes its image term plus the internal energy (:mod:`segsnake.regularize`),
-plus an axial pull on open cylinders' ends and the user's shape prior, with the step-limited
-L-BFGS of :mod:`segsnake.optimize` (the edge stages refuse steps that fold the surface; the
+plus, in the edge stages, an axial pull on a cylinder's ends, and the user's shape prior, with
+the step-limited L-BFGS of :mod:`segsnake.optimize` (the edge stages refuse steps that fold the surface; the
 region stages price the volume it wraps twice).
 """
 
@@ -73,10 +73,6 @@ MIN_EDGE_SUPPORT = 0.15
 NODE_SPACING = 4.0
 CAPTURE_NODE_SPACING = 0.75
 INNER_CAPTURE_NODE_SPACING = 2.0
-#: The capture runs again at this fraction of its smoothing width (:meth:`_Run.capture`): at
-#: 1.5 mm it stops about 4 mm inside a hollow tube's mid-surface, where the refinement's ridge
-#: term is flat and its tension shortened the tube instead (docs/benchmarks.md, session 15).
-CAPTURE_CONTINUATION = 0.5
 #: ... at most this many per knot interval ...
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
@@ -86,6 +82,11 @@ QUADRATURE_RTOL = 2e-3
 #: catches gross under-resolution (measured: 0.2-1 % while a blob's refinement runs).
 QUADRATURE_CHECK_EVERY = 25
 QUADRATURE_RTOL_RUNNING = 2e-2
+#: The capture runs again at this fraction of its smoothing width (:meth:`_Run.capture`): at
+#: 1.5 mm it stops about 4 mm inside a hollow tube's mid-surface, where the refinement's ridge
+#: term is flat and its tension shortened the tube instead (docs/benchmarks.md, session 15: the
+#: sweep, which is not flat, and held-out tubes).
+CAPTURE_CONTINUATION = 0.5
 #: The region energy's density beyond the field of view (voxels of padding, and the density
 #: there: +1, what the region densities give far outside an object, whose inside is negative).
 #: Space the image does not show is not the object: a tube that leaves the volume ends on its
@@ -350,7 +351,8 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     if region_energy(config):
         return _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                region_params, on_boundary, init_record)
-    # The edge stages' record: the first run's initial surface chose the edges discarded.
+    # The edge stages' record: the edges discarded were chosen from the first run's initial
+    # surface.
     from segsnake.region import RegionParams
 
     options = _restart_options(image, sp, config, region_params or RegionParams())
@@ -594,7 +596,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
 
 
 #: Version of the ``restart`` record in a result's settings (:func:`_restart_options`).
-RESTART_FORMAT = 1
+RESTART_FORMAT = 2  # (2: the edge stages' tubes closed, no frame; session 15)
 
 
 def _restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
@@ -907,6 +909,16 @@ class _Run:
                            region=True, stationary=stationary, resume=resume, leaves=leaves,
                            used=used)
 
+    def _edge_lookup(self, field: NDArray, divergence_of_gradient: bool) -> "_Shifted":
+        """An edge stage's lookup (:meth:`segsnake.lookup.Lookup.from_field`): its density is
+        zero on :data:`FOV_PAD` voxels around the grid (no edge is known beyond the field of
+        view), sampled in the grid's coordinates."""
+        from segsnake.lookup import Lookup
+
+        return _Shifted(Lookup.from_field(field, self.sp, pad=FOV_PAD,
+                                          divergence_of_gradient=divergence_of_gradient),
+                        FOV_PAD * np.asarray(self.sp))
+
     def capture(self, model, edges: NDArray, smooth_mm: float,
                 node_spacing: float = CAPTURE_NODE_SPACING):
         """The flux of ``grad(-d)``, d the distance to the edges (smoothed to be differentiable).
@@ -924,19 +936,19 @@ class _Run:
         Beyond the field of view ``lap(-d)`` is zero (:data:`FOV_PAD`; no edge is known there):
         a tube that leaves the volume feels nothing past the face, and its tension ends it there.
         """
-        from segsnake.lookup import Lookup
-
         if not edges.any():
             raise SegmentationError("no edges found outside the initial surface")
         t0 = time.perf_counter()
         dist = distance_to(edges, self.sp)
         self.timings["lookup_s"] += time.perf_counter() - t0
         first = max(smooth_mm, 1.5)
-        for sigma in (first, CAPTURE_CONTINUATION * first):
+        widths = (first, CAPTURE_CONTINUATION * first)
+        for k, sigma in enumerate(widths):
             t0 = time.perf_counter()
-            f_d = gaussian_filter(-dist, [sigma / x for x in self.sp], mode="nearest", copy=False)
-            lookup = _Shifted(Lookup.from_field(f_d, self.sp, pad=FOV_PAD),
-                              FOV_PAD * np.asarray(self.sp))
+            # -d, filtered in place (the last pass takes dist itself)
+            f_d = np.negative(dist, out=None if k < len(widths) - 1 else dist)
+            f_d = gaussian_filter(f_d, [sigma / x for x in self.sp], mode="nearest", copy=False)
+            lookup = self._edge_lookup(f_d, divergence_of_gradient=True)
             del f_d
             self.timings["lookup_s"] += time.perf_counter() - t0
             # -d varies on the scale of sigma only near edges and medial axes: nodes 2 sigma
@@ -946,6 +958,7 @@ class _Run:
             # -28311 against -51907, Dice 0.53).
             model = self._stage(f"capture (edge distance, sigma={sigma:.2f}mm)", model, lookup,
                                 sigma, 2 * sigma, tol=1e-4, node_spacing=node_spacing)
+            del lookup
         return model
 
     def refine(self, model, em, out: NDArray, feature_mm: float, tol: float | None = None,
@@ -956,14 +969,9 @@ class _Run:
         ridge of f. (The flux of f n_out would add f div(n_out) = 2 H f, and its optimum would
         sit 2 s^2 H outside the ridge: +15 % volume on a 10 mm ball.)
         """
-        from segsnake.lookup import Lookup
-
         t0 = time.perf_counter()
         along = sum(out[..., d] * np.gradient(em.f, h, axis=d) for d, h in enumerate(self.sp))
-        # (zero beyond the field of view: no edge is known there; see capture)
-        lookup = _Shifted(Lookup.from_field(along.astype(np.float32), self.sp,
-                                            divergence_of_gradient=False, pad=FOV_PAD),
-                          FOV_PAD * np.asarray(self.sp))
+        lookup = self._edge_lookup(along.astype(np.float32), divergence_of_gradient=False)
         del along
         self.timings["lookup_s"] += time.perf_counter() - t0
         return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol,
