@@ -56,8 +56,14 @@ def test_a_small_window_gives_the_whole_volumes_result():
     # went on from there; its iterations count against the stage's cap.
     grown = [h for h in small.history if h.get("window_grown")]
     assert all(h.get("left") and h["message"] == "stopped by callback" for h in grown)
-    stages = [h["stage"] for h in small.history if not h.get("window_grown")]
-    assert stages == [h["stage"] for h in whole.history]
+    # The same stages, up to the finer grids: whether a finer grid is kept compares two image
+    # energies that agree to the noise where it fits no better, and flips with the rounding
+    # (measured: 13 x 13 kept or not, Dice 0.99618 and 0.99619); the results agree (below).
+    stages = [h["stage"] for h in small.history
+              if not h.get("window_grown") and not h["stage"].startswith("grid")]
+    assert stages == [h["stage"] for h in whole.history if not h["stage"].startswith("grid")]
+    assert stages == ["region", "two classes, round 1", "two classes, round 2",
+                      "two classes, round 3"]
     assert not any(h.get("left") for h in small.history if not h.get("window_grown"))
     assert not any("quadrature" in w for w in result_warnings(small))
     assert dice(small.mask, whole.mask) > 0.995
