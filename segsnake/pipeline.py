@@ -213,10 +213,15 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
         if center is None or config.radii is None:
             if image is None:
                 raise ConfigError("sphere initialization needs --center and --radii")
-            c_idx, r_idx = auto_init(image, sp, config.polarity)
-            center = c_idx * sp if center is None else center
-            if axes is None:
-                axes = np.diag(r_idx * sp)
+            if center is not None:  # a click alone: the largest ball of its tissue
+                from segsnake.click import click_radius
+
+                axes = click_radius(image, sp, center) * np.eye(3)
+            else:  # nothing: the largest object, a sphere inside it
+                c_idx, r_idx = auto_init(image, sp, config.polarity)
+                center = c_idx * sp
+                if axes is None:
+                    axes = np.diag(r_idx * sp)
         return SphereModel.unit(m1, m2).transformed(axes, center)
     if config.shape == "cylinder":
         if config.centerline is not None:  # issue 16: a tube along a polyline
@@ -528,9 +533,14 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             raise SegmentationError("the surface filled the whole image: no outside to compare")
         contrast, polarity = rg.step_contrast(sub, inside, shell)
         if contrast < p.min_separation * intensity.sigma:
+            # (a click alone started from one tissue's ball: an object of several needs a radius)
+            hint = " or give --radii (the click alone found one tissue's ball)" \
+                if config.center is not None and config.radii is None and not on_boundary \
+                and model.kind == "sphere" else ""
             raise SegmentationError(
                 f"no boundary found: inside and outside the surface differ by {contrast:.3g}, "
-                f"{contrast / intensity.sigma:.2f} x the click's spread; check the initialization")
+                f"{contrast / intensity.sigma:.2f} x the click's spread; check the "
+                f"initialization{hint}")
         if config.polarity in ("bright", "dark"):
             polarity = 1 if config.polarity == "bright" else -1
         if k == p.two_class_rounds:

@@ -1,0 +1,113 @@
+"""The initial sphere from a click alone (``--center`` without ``--radii``; docs/design.md, "One
+click").
+
+A click says "this tissue". The sphere about it is the largest ball that still looks like one
+tissue: balls of growing radius (:data:`SCALES_PER_OCTAVE` to a doubling) about the click,
+each read in the image smoothed as the intensity model reads it, and the first that fails one of
+two tests ends the growth:
+
+- *mixed*: its robust spread (1.4826 x MAD, at least ``min_sigma_fraction`` of the image's
+  range, as the intensity model's) exceeds :data:`SPREAD_GROWTH` x the smallest ball's, which
+  is the tissue's own texture and noise: the ball now holds another tissue;
+- *bounded*: the shell just beyond it (to the next radius) has a median more than
+  :data:`SHELL_SPREADS` of its spreads from the ball's: a boundary lies in that shell.
+
+A mixed ball is one step too far (the radius before it is returned); a bounded one is the last
+inside. Both tests are medians: a boundary off to one side is a minority of the ball until the
+ball has crossed it by about one step of radius, so an off-centre click's ball may reach that
+far past its nearest boundary; the core the intensity model reads (half the radius) stays
+inside. The smallest ball is the smallest whose core (``core_fraction`` of the radius, where the
+intensity model is read) holds :data:`segsnake.region.MIN_SAMPLES` voxels. Without a click the
+sphere comes from the whole image instead (:func:`segsnake.pipeline.auto_init`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from segsnake.region import MIN_SAMPLES, RegionParams, smoothed
+
+#: Radii tried per doubling: each ball holds twice the previous one's volume.
+SCALES_PER_OCTAVE = 3
+#: How much the ball's spread may grow over the smallest ball's (its tissue's texture and noise)
+#: before the ball counts as holding another tissue (the sweep, 1.25-2: docs/benchmarks.md,
+#: session 16).
+SPREAD_GROWTH = 1.5
+#: How far (in the ball's spreads) the next shell's median may lie from the ball's before a
+#: boundary counts as found in it: the two-class rounds' weight ramps in from one spread.
+SHELL_SPREADS = 2.0
+
+
+def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[float], *,
+                 spread_growth: float = SPREAD_GROWTH, shell_spreads: float = SHELL_SPREADS,
+                 smooth_mm: float = RegionParams.smooth_mm,
+                 core_fraction: float = RegionParams.core_fraction,
+                 min_sigma_fraction: float = RegionParams.min_sigma_fraction) -> float:
+    """Radius (mm) of the largest ball about ``center_mm`` that looks like one tissue.
+
+    Parameters
+    ----------
+    image : ndarray (nx, ny, nz)
+        The image (NaN-free).
+    spacing : (sx, sy, sz)
+        Voxel size in mm.
+    center_mm : (3,)
+        The click, in mm of scaled index space.
+    spread_growth, shell_spreads : float
+        The two tests (module docstring).
+    smooth_mm, core_fraction, min_sigma_fraction : float
+        As the intensity model reads the click (:class:`segsnake.region.RegionParams`).
+
+    Returns
+    -------
+    float
+        The radius in mm, at least the smallest ball's and at most half the volume's smallest
+        extent.
+    """
+    sp = np.asarray(spacing, dtype=np.float64)
+    c = np.asarray(center_mm, dtype=np.float64)
+    shape = np.asarray(image.shape)
+    r_min = (3 * MIN_SAMPLES * float(np.prod(sp)) / (4 * math.pi)) ** (1 / 3) / core_fraction
+    r_max = max(r_min, 0.5 * float(np.min((shape - 1) * sp)))
+    step = 2.0 ** (1.0 / SCALES_PER_OCTAVE)
+    radii = [r_min]
+    while radii[-1] * step <= r_max:
+        radii.append(radii[-1] * step)
+    floor = min_sigma_fraction * (float(np.max(image)) - float(np.min(image)))
+
+    def around(reach: float) -> tuple[NDArray, NDArray]:
+        # The smoothed intensities within ``reach`` of the click, nearest first (a ball is a
+        # prefix), from a block that holds them and the smoothing's reach.
+        pad = reach + 3 * smooth_mm
+        lo = np.clip(np.floor((c - pad) / sp).astype(int), 0, shape - 1)
+        hi = np.clip(np.ceil((c + pad) / sp).astype(int) + 1, 1, shape)
+        block = smoothed(image[tuple(slice(a, b) for a, b in zip(lo, hi))], sp, smooth_mm)
+        axes = [(np.arange(a, b) * s - x) ** 2 for a, b, s, x in zip(lo, hi, sp, c)]
+        dist = np.sqrt(axes[0][:, None, None] + axes[1][None, :, None] + axes[2][None, None, :])
+        near = dist <= reach
+        dist, block = dist[near], block[near]
+        order = np.argsort(dist, kind="stable")
+        return block[order], dist[order]
+
+    def stats(x: NDArray) -> tuple[float, float]:
+        m = float(np.median(x))
+        return m, max(1.4826 * float(np.median(np.abs(x - m))), floor)
+
+    base, reach = None, 0.0
+    for k, r in enumerate(radii):
+        if r * step > reach:  # (a block four times as far: the work stays that of the last)
+            reach = min(4 * r * step, radii[-1] * step)
+            values, dist = around(reach)
+        inner, outer = np.searchsorted(dist, [r, r * step], side="right")
+        m, s = stats(values[:inner])
+        base = s if base is None else base
+        if s > spread_growth * base:
+            return radii[k - 1]
+        shell = values[inner:outer]
+        if shell.size and abs(float(np.median(shell)) - m) > shell_spreads * s:
+            return r
+    return radii[-1]
