@@ -14,6 +14,10 @@ Tools (settings in :data:`PEER_PARAMS`, the reasons in the README):
     or ``--shape cylinder --axis-start/--axis-end/--radius``), on the whole image.
 ``segsnake, no click``
     the brain only: ``segsnake segment`` with no initialization at all.
+``segsnake, centre only``
+    the sphere cases: ``segsnake segment --center`` with the click's centre (and each perturbed
+    click's) and no radius: the sphere comes from the image around it
+    (:func:`segsnake.click.click_radius`).
 ``segsnake, perfect edges``
     the ceiling of model and optimizer: the same command on the reference mask itself as the
     image, with the click and its default options: the region energy chooses M (the issue's
@@ -68,10 +72,12 @@ from machine import machine_info, machine_line, report  # noqa: E402
 BRAIN_CASE = "colin27-brain"
 SEGSNAKE = "segsnake"
 NO_CLICK = "segsnake, no click"
+CENTRE_ONLY = "segsnake, centre only"
 CEILING = "segsnake, perfect edges"
 BRAIN_TOOLS = ("BET", "ROBEX")
 PEERS = ("skimage MCV", "skimage MGAC", "SimpleITK GAC", "SimpleITK confidence connected")
-TOOLS = (SEGSNAKE, NO_CLICK, CEILING, *BRAIN_TOOLS, *PEERS)
+TOOLS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CEILING, *BRAIN_TOOLS, *PEERS)
+OURS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CEILING)
 
 #: Peer parameters, chosen by ``--tune`` on the tuning case (mean Dice over its click and
 #: perturbed clicks) and frozen; the sweep's numbers are in docs/benchmarks.md.
@@ -128,8 +134,9 @@ def init_args(init: dict | None) -> list[str]:
     """``segsnake segment`` flags for an initialization (none: the image decides)."""
     if init is None:
         return []
-    if init["shape"] == "sphere":
-        return ["--center", *map(str, init["center"]), "--radii", *map(str, init["radii"])]
+    if init["shape"] == "sphere":  # (no radii: the click alone)
+        return ["--center", *map(str, init["center"]),
+                *(["--radii", *map(str, init["radii"])] if init.get("radii") else [])]
     return ["--shape", "cylinder", "--axis-start", *map(str, init["axis_start"]),
             "--axis-end", *map(str, init["axis_end"]), "--radius", str(init["radius"])]
 
@@ -289,6 +296,9 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
                 mask = record(SEGSNAKE, label, init, run_segsnake(case["image"], init, tmp))
                 if label == "click":
                     seg_click_mask = mask
+            if CENTRE_ONLY in tools and init["shape"] == "sphere":
+                centre = {"shape": "sphere", "center": init["center"]}
+                record(CENTRE_ONLY, label, centre, run_segsnake(case["image"], centre, tmp))
             # On the brain, users run BET and ROBEX; a generic region grower's region of
             # interest would be the whole 7 M-voxel head (15+ min a run for the morphological ones).
             for method in (m for m in PEERS if m in tools and case["name"] != BRAIN_CASE):
@@ -409,7 +419,7 @@ def markdown(info: dict) -> str:
             lines.append(f"| {case['case']} | {label} | {dice} | {spread} | "
                          f"{_fmt(c.get('hausdorff95_mm'), '.1f')} | {_fmt(c.get('assd_mm'), '.2f')} | "
                          f"{_fmt(c.get('wall_s'), '.1f')} | {_fmt(c.get('peak_rss_mb'), '.0f')} | "
-                         f"{flags if tool in (SEGSNAKE, NO_CLICK, CEILING) else ''} |")
+                         f"{flags if tool in OURS else ''} |")
     return "\n".join(lines)
 
 
