@@ -38,7 +38,8 @@ SCALES_PER_OCTAVE = 3
 #: session 16).
 SPREAD_GROWTH = 1.5
 #: How far (in the ball's spreads) the next shell's median may lie from the ball's before a
-#: boundary counts as found in it: the two-class rounds' weight ramps in from one spread.
+#: boundary counts as found in it (where the two-class rounds give the two classes half their
+#: weight; flat from 1.5 to 3 on the benchmark: docs/benchmarks.md, session 16).
 SHELL_SPREADS = 2.0
 
 
