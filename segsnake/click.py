@@ -6,19 +6,23 @@ tissue: balls of growing radius (:data:`SCALES_PER_OCTAVE` to a doubling) about 
 each read in the image smoothed as the intensity model reads it, and the first that fails one of
 two tests ends the growth:
 
-- *mixed*: its robust spread (1.4826 x MAD, at least ``min_sigma_fraction`` of the image's
-  range, as the intensity model's) exceeds :data:`SPREAD_GROWTH` x the smallest ball's, which
-  is the tissue's own texture and noise: the ball now holds another tissue;
+- *mixed*: its robust spread (as the intensity model's: 1.4826 x MAD, at least
+  ``min_sigma_fraction`` of the image's range) exceeds :data:`SPREAD_GROWTH` x the smallest
+  ball's, which is the tissue's own texture and noise: the ball now holds another tissue;
 - *bounded*: the shell just beyond it (to the next radius) has a median more than
-  :data:`SHELL_SPREADS` of its spreads from the ball's: a boundary lies in that shell.
+  :data:`SHELL_SPREADS` x the ball's spread from the ball's median: a boundary lies in that
+  shell.
 
 A mixed ball is one step too far (the radius before it is returned); a bounded one is the last
-inside. Both tests are medians: a boundary off to one side is a minority of the ball until the
-ball has crossed it by about one step of radius, so an off-centre click's ball may reach that
-far past its nearest boundary; the core the intensity model reads (half the radius) stays
-inside. The smallest ball is the smallest whose core (``core_fraction`` of the radius, where the
-intensity model is read) holds :data:`segsnake.region.MIN_SAMPLES` voxels. Without a click the
-sphere comes from the whole image instead (:func:`segsnake.pipeline.auto_init`).
+inside. Both tests are medians, so they see a boundary that curves around the click (a
+structure about it) at once, but one off to one side (a flat face) only late: it fills less than
+half of any shell, and the spread grows only once a good part of the ball lies beyond it. An
+off-centre click's sphere may then reach well past its nearest boundary; the region stages pull
+it back (the review's plane and cube phantoms, docs/benchmarks.md session 16). The smallest ball
+is the smallest whose core (``core_fraction`` of the radius, where the intensity model is read)
+holds about :data:`segsnake.region.MIN_SAMPLES` voxels; a ball with fewer than that (very thick
+slices) is passed over. Without a click the sphere comes from the whole image instead
+(:func:`segsnake.pipeline.auto_init`).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from segsnake.region import MIN_SAMPLES, RegionParams, smoothed
+from segsnake.region import MIN_SAMPLES, IntensityModel, RegionParams, smoothed
 
 #: Radii tried per doubling: each ball holds twice the previous one's volume.
 SCALES_PER_OCTAVE = 3
@@ -56,7 +60,7 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
         The image (NaN-free).
     spacing : (sx, sy, sz)
         Voxel size in mm.
-    center_mm : (3,)
+    center_mm : sequence of 3 floats
         The click, in mm of scaled index space.
     spread_growth, shell_spreads : float
         The two tests (module docstring).
@@ -66,8 +70,8 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
     Returns
     -------
     float
-        The radius in mm, at least the smallest ball's and at most half the volume's smallest
-        extent.
+        The radius in mm: at most half the volume's smallest extent, or the smallest ball's if
+        that is larger.
     """
     sp = np.asarray(spacing, dtype=np.float64)
     c = np.asarray(center_mm, dtype=np.float64)
@@ -78,12 +82,15 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
     radii = [r_min]
     while radii[-1] * step <= r_max:
         radii.append(radii[-1] * step)
-    floor = min_sigma_fraction * (float(np.max(image)) - float(np.min(image)))
+    # The spread's floor is a share of the raw image's range; the intensity model's is of the
+    # smoothed image's, a few % less (Colin27: 254 against 242), which smoothing the whole image
+    # here would cost as much as the model's own smoothing to match.
+    image_range = float(np.max(image)) - float(np.min(image))
 
     def around(reach: float) -> tuple[NDArray, NDArray]:
         # The smoothed intensities within ``reach`` of the click, nearest first (a ball is a
-        # prefix), from a block that holds them and the smoothing's reach.
-        pad = reach + 3 * smooth_mm
+        # prefix), from a block that holds them and the Gaussian's support (4 widths).
+        pad = reach + 4 * smooth_mm
         lo = np.clip(np.floor((c - pad) / sp).astype(int), 0, shape - 1)
         hi = np.clip(np.ceil((c + pad) / sp).astype(int) + 1, 1, shape)
         block = smoothed(image[tuple(slice(a, b) for a, b in zip(lo, hi))], sp, smooth_mm)
@@ -94,21 +101,20 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
         order = np.argsort(dist, kind="stable")
         return block[order], dist[order]
 
-    def stats(x: NDArray) -> tuple[float, float]:
-        m = float(np.median(x))
-        return m, max(1.4826 * float(np.median(np.abs(x - m))), floor)
-
-    base, reach = None, 0.0
-    for k, r in enumerate(radii):
+    base, reach, last = None, 0.0, radii[0]
+    for r in radii:
         if r * step > reach:  # (a block four times as far: the work stays that of the last)
             reach = min(4 * r * step, radii[-1] * step)
             values, dist = around(reach)
         inner, outer = np.searchsorted(dist, [r, r * step], side="right")
-        m, s = stats(values[:inner])
-        base = s if base is None else base
-        if s > spread_growth * base:
-            return radii[k - 1]
+        if inner < MIN_SAMPLES:  # (no spread yet: slices far thicker than the pixels)
+            continue
+        model = IntensityModel.from_samples(values[:inner], image_range, min_sigma_fraction)
+        base = model.sigma if base is None else base
+        if model.sigma > spread_growth * base:
+            return last
         shell = values[inner:outer]
-        if shell.size and abs(float(np.median(shell)) - m) > shell_spreads * s:
+        if shell.size and abs(float(np.median(shell)) - model.mu) > shell_spreads * model.sigma:
             return r
+        last = r
     return radii[-1]

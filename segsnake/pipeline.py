@@ -167,13 +167,16 @@ def _voxel_index(config, p: Sequence[float],
 
 def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
                   index_from_world: Callable[[NDArray], NDArray] | None = None,
-                  image: NDArray | None = None) -> SplineSurface:
+                  image: NDArray | None = None, region_params=None) -> SplineSurface:
     """Initial snake (in mm, scaled index space) from the ``segment`` options.
 
     Positions and radii are voxel indices along the array axes, or world millimetres with
     ``config.world``: then ``index_from_world`` converts points, sphere radii are lengths along
     the world axes (mapped through the inverse affine, so a rotated grid gets a rotated
-    ellipsoid) and a cylinder radius is a length in mm.
+    ellipsoid) and a cylinder radius is a length in mm. A sphere without radii: for the region
+    energy with a centre, the largest ball about it that looks like one tissue
+    (:func:`segsnake.click.click_radius`, read as ``region_params`` read the click); otherwise
+    half the size of the image's largest object (:func:`auto_init`).
     """
     sp = np.asarray(spacing, dtype=np.float64)
     world_axes = None
@@ -213,13 +216,19 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
         if center is None or config.radii is None:
             if image is None:
                 raise ConfigError("sphere initialization needs --center and --radii")
-            if center is not None:  # a click alone: the largest ball of its tissue
+            if center is not None and region_energy(config):
+                # A click alone: the largest ball of its tissue. (The edge stages read no
+                # intensity model from it; they keep the object's size.)
                 from segsnake.click import click_radius
+                from segsnake.region import RegionParams
 
-                axes = click_radius(image, sp, center) * np.eye(3)
-            else:  # nothing: the largest object, a sphere inside it
+                p = region_params or RegionParams()
+                axes = click_radius(image, sp, center, smooth_mm=p.smooth_mm,
+                                    core_fraction=p.core_fraction,
+                                    min_sigma_fraction=p.min_sigma_fraction) * np.eye(3)
+            else:  # the largest object: a sphere inside it
                 c_idx, r_idx = auto_init(image, sp, config.polarity)
-                center = c_idx * sp
+                center = c_idx * sp if center is None else center
                 if axes is None:
                     axes = np.diag(r_idx * sp)
         return SphereModel.unit(m1, m2).transformed(axes, center)
@@ -346,7 +355,7 @@ def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
     # (issue 17, --init) A saved snake replaces the initial shape and skips the rough start.
     on_boundary = init_model is not None
     model = init_model if on_boundary else \
-        initial_model(config, sp, image.shape, index_from_world, image)
+        initial_model(config, sp, image.shape, index_from_world, image, region_params)
     init_s = time.perf_counter() - t0
     if config.seed_point is not None:
         # The seed point is a position like the others: world mm with --world. (It may lie

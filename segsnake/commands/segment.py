@@ -50,9 +50,9 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--shape", choices=("sphere", "cylinder"), default=None,
                    help="snake topology (default sphere)")
     _position(g, "--center", "sphere centre (default: estimated from the image)")
-    _vec3(g, "--radii", ("RI", "RJ", "RK"), "sphere radii (default: with --center, the largest "
-          "ball about the click that looks like one tissue; without, half the largest object's "
-          "size)")
+    _vec3(g, "--radii", ("RI", "RJ", "RK"), "sphere radii (default: with --center and the "
+          "region energy, the largest ball about the click that looks like one tissue; "
+          "otherwise half the largest object's size)")
     _position(g, "--axis-start", "cylinder axis start point (a markups file with two points: "
                                  "start and end)")
     _position(g, "--axis-end", "cylinder axis end point")
