@@ -12,46 +12,44 @@ Usage::
 
 from __future__ import annotations
 
-import json
-import os
 import sys
+from pathlib import Path
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+HERE = Path(__file__).resolve().parent
+for _p in (HERE / "real", HERE, HERE.parent):
+    sys.path.insert(0, str(_p))
 
-import nibabel as nib  # noqa: E402
-
+from fetch import load_cases  # noqa: E402
 from segsnake import click  # noqa: E402
 from segsnake.config import SegmentConfig  # noqa: E402
 from segsnake.errors import SegmentationError  # noqa: E402
+from segsnake.io import load_volume  # noqa: E402
 from segsnake.metrics import dice  # noqa: E402
 from segsnake.pipeline import segment_volume  # noqa: E402
 
-CASES = os.path.join(os.environ.get("SEGSNAKE_REAL_DATA",
-                                    os.path.expanduser("~/.cache/segsnake/real")), "cases")
 #: (spread_growth, shell_spreads), the defaults first.
 SETTINGS = ((click.SPREAD_GROWTH, click.SHELL_SPREADS), (1.25, 2.0), (2.0, 2.0), (1.5, 1.5),
             (1.5, 3.0))
 
 
 def main() -> None:
-    with open(os.path.join(CASES, "cases.json")) as f:
-        cases = [c for c in json.load(f)
-                 if c["role"] == "benchmark" and c["init"]["shape"] == "sphere"]
-    images: dict[str, tuple[np.ndarray, tuple[float, ...]]] = {}
+    cases = [c for c in load_cases()
+             if c["role"] == "benchmark" and c["init"]["shape"] == "sphere"]
+    images: dict[str, np.ndarray] = {}
     print("| spread_growth, shell_spreads | " + " | ".join(c["name"] for c in cases) + " |")
     print("|---" * (len(cases) + 1) + "|")
     for growth, spreads in SETTINGS:
         row = []
         for case in cases:
+            truth_volume = load_volume(case["truth"])
+            truth = np.asarray(truth_volume.data) > 0
+            sp = tuple(float(s) for s in truth_volume.spacing)
             if case["image"] not in images:
-                img = nib.load(os.path.join(CASES, case["image"]))
-                images[case["image"]] = (np.asarray(img.dataobj, dtype=np.float32),
-                                         tuple(float(s) for s in img.header.get_zooms()[:3]))
-            image, sp = images[case["image"]]
-            truth = np.asarray(nib.load(os.path.join(CASES, case["truth"])).dataobj) > 0
+                images[case["image"]] = np.asarray(load_volume(case["image"]).data,
+                                                   dtype=np.float32)
+            image = images[case["image"]]
             centre = np.asarray(case["init"]["center"], dtype=np.float64)
             r = click.click_radius(image, sp, centre * sp, spread_growth=growth,
                                    shell_spreads=spreads)
@@ -62,7 +60,6 @@ def main() -> None:
             except SegmentationError:
                 row.append(f"fail (r {r:.1f} mm)")
         print(f"| {growth}, {spreads} | " + " | ".join(row) + " |", flush=True)
-
 
 if __name__ == "__main__":
     main()
