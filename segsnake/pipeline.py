@@ -419,12 +419,16 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
        midpoint intensity between the two, i.e. on the step (plus, with
        ``edge_length_mm``, the flux of ``grad I`` over the step's peak gradient).
 
+    A tube that reaches a division of its structure (:mod:`segsnake.branching`, read after
+    stage 2 and after each round but the last) is held back beyond it from then on.
+
     ``on_boundary`` (a saved result): stage 2 is skipped, the snake is already on the step.
     ``init_record``: that result's ``restart`` record (:func:`_restart_options`; in its
     ``snake.json`` settings). When it was made on this image with these options for a snake of
     this size, the run rebuilds the energy the result's last stage ended in (the intensity
-    model, the window, the last round's starting surface that placed the outside's shell, the
-    stage's reference surface and quadrature order) and runs only that stage, which checks
+    model, the window, the last round's starting surface that placed the outside's shell, a
+    tube's cuts at its divisions, the stage's reference surface and quadrature order) and runs
+    only that stage, which checks
     stationarity before its first step: a result comes back unchanged. Otherwise (a hand-edited
     markups file, another size, image or options) the intensity model is read from the snake's
     core and the two-class rounds run from it.
@@ -433,6 +437,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     (:func:`segsnake.optimize.stationarity`), and its record is returned in ``settings``.
     """
     from segsnake import region as rg
+    from segsnake.branching import Cut, find_cuts
     from segsnake.rasterize import rasterize
     from segsnake.window import Window
 
@@ -446,10 +451,13 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
     options = _restart_options(image, sp, config, p)
     restart, restart_use = _usable_restart(init_record, options, model) if on_boundary \
         else (None, None)
+    # where a tube branches, beyond which it is held back (segsnake.branching), by end
+    cuts: dict[int, Cut] = {}
     if restart is not None:
         window = Window(*(tuple(map(int, c)) for c in restart["window"]),
                         tuple(map(int, image.shape)), sp)
         intensity = rg.IntensityModel(**restart["intensity"])
+        cuts = {int(end): Cut.from_dict(c) for end, c in restart["cuts"].items()}
     else:
         window = Window.around(model, image.shape, sp, p.window_mm)
         core = _click_core(window.model_in(model), window.shape, sp, p.core_fraction)
@@ -473,7 +481,10 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 # the density straight into the lookup's array, +1 in its padding
                 t0 = time.perf_counter()
                 values[...] = FOV_DENSITY
-                density(window, values[(slice(FOV_PAD, -FOV_PAD or None),) * 3])
+                inner = values[(slice(FOV_PAD, -FOV_PAD or None),) * 3]
+                density(window, inner)
+                for cut in cuts.values():
+                    cut.apply(inner, window.lo, sp, FOV_DENSITY)
                 spent.append(time.perf_counter() - t0)
 
             t0 = time.perf_counter()
@@ -502,6 +513,14 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             else:  # (ended near a face it never came near while running: afresh)
                 used = 0
 
+    def branching(model):
+        # A tube that reached a division of its structure ends there (the first cut found at
+        # an end stays: the rounds after it draw the tube back to it).
+        if model.kind == "cylinder":
+            for end, cut in find_cuts(model, image_s, sp, intensity, p.branch_fraction,
+                                      p.cut_radii).items():
+                cuts.setdefault(end, cut)
+
     report("region", 0.1)
     if not on_boundary:
         model = stage(model, lambda win, out: rg.region_density(image_s[win.slices], intensity,
@@ -514,6 +533,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
             m2 = tube_rings(model)
             if m2 != model.m2:
                 model = interpolate_tube(model, m2)
+        branching(model)
     report("two classes", 0.5)
 
     def inside_and_shell(surface, win):
@@ -581,6 +601,8 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         if k == last:
             # The result's energy: its record (lookup from these, reference, order).
             final, round_start, final_window = run.last, start, window
+        else:
+            branching(model)
         # (a tube's rings along follow its calibre: its finer grids are finer around only)
         if k == last and config.coarse_to_fine and config.m1 is None \
                 and (config.m2 is None or model.kind == "cylinder"):
@@ -596,6 +618,7 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         record = {**options, "intensity": intensity.to_dict(),
                   "window": [list(final_window.lo), list(final_window.hi)],
                   "round_start": round_start.to_dict(), "stage": final["stage"],
+                  "cuts": {str(end): cut.to_dict() for end, cut in cuts.items()},
                   "reference": final["reference"].to_dict(), "order": final["order"]}
     else:  # (no two-class round: the region stage's result, no record)
         final = run.last
@@ -610,12 +633,19 @@ def _segment_region(image, sp, config, model, progress, extra_energy, init_s,
         settings["restart_record"] = restart_use
     if model.kind == "cylinder":
         settings["ends"] = tube_ends(model, image.shape, sp)
+        from segsnake.profile import ring_centroids
+
+        for end, cut in cuts.items():
+            # (an end that had crept far past the division before it was seen may stay there)
+            c = ring_centroids(model, np.array([float(end)]))[0][0]
+            if abs(np.dot(c - cut.centre, cut.normal)) <= cut.radius / p.cut_radii:
+                settings["ends"][end] = "branching"
     return SegmentResult(model, mask, final["energy"], run.iterations, run.history,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
 
 
 #: Version of the ``restart`` record in a result's settings (:func:`_restart_options`).
-RESTART_FORMAT = 2  # (2: the edge stages' tubes closed, no frame; session 15)
+RESTART_FORMAT = 3  # (2: the edge stages' tubes closed, no frame; session 15; 3: cuts)
 
 
 def _restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:

@@ -136,6 +136,17 @@ class RegionParams:
     #: that reading's smoothing along the surface. A surface that comes within ``shell_mm`` of
     #: a face of the window runs its stage again in a window around it.
     window_mm: float = 20.0
+    #: A tube's cross-section *branches* (:mod:`segsnake.branching`) when its second lumen piece
+    #: holds this fraction of the tube's lumen area (the median of the largest pieces of the
+    #: sections nearer its middle): a division's branches are of the trunk's order of size (the
+    #: lung2 carina's smaller: 0.6 of the trachea's), a noise speck or a ragged rim is not.
+    branch_fraction: float = 0.25
+    #: Beyond the plane of a tube's division the density is the field of view's within this many
+    #: lumen radii (of a disk of the lumen's area) of its centre: the branches' roots, which the
+    #: end would have to cross to reach them, and not much further (the radius of the ring at
+    #: the division, swollen where the tube had crept across both branches, reached another leg
+    #: of a U-shaped tube 20 mm away).
+    cut_radii: float = 2.0
 
 
 #: Fewest voxels the click's intensity model is estimated from (a sphere around the click's
