@@ -11,7 +11,7 @@ perturbed clicks, and of two tubes that do not divide (the S6 vessels of
 
 Usage::
 
-    .venv/bin/python benchmarks/branch_sweep.py [--no-real]
+    .venv/bin/python benchmarks/branch_sweep.py [--no-real] [--settings 0.15,2 0.4,2]
 """
 
 from __future__ import annotations
@@ -86,6 +86,32 @@ def y_tube(seed: int = 0, spacing: Sequence[float] = (1.0, 1.0, 1.0), noise: flo
     return image.astype(np.float32), reference, click, segments
 
 
+def u_tube(gap: float = 16.0, seed: int = 0, radius: float = 5.0
+           ) -> tuple[np.ndarray, dict]:
+    """A U-shaped tube of two legs ``gap`` mm apart (1 mm voxels, 100 on 20, noise 8): the left
+    leg leaves through the bottom face, the right one divides 34 mm up into two branches of 0.8 x
+    its radius. Returns the image and a 5-point centerline click from the left leg over the bend
+    into the right one (voxel indices, radius 2.5 mm)."""
+    rng = np.random.default_rng(seed)
+    shape = (64, 56, 80)
+    xl, xr, top, fork_z = 32 - gap / 2, 32 + gap / 2, 56.0, 34.0
+    segments = [((xl, 28, -10.0), (xl, 28, top), radius), ((xr, 28, fork_z), (xr, 28, top), radius)]
+    bend = np.linspace(0, np.pi, 40)
+    arc = np.stack([32 - gap / 2 * np.cos(bend), np.full_like(bend, 28.0),
+                    top + gap / 2 * np.sin(bend)], 1)
+    segments += [(a, b, radius) for a, b in zip(arc[:-1], arc[1:])]
+    fork = np.array([xr, 28, fork_z])
+    for side in (-1, 1):
+        segments.append((fork, fork + 40 * np.array([0, side * np.tan(np.radians(35)), -1]),
+                         0.8 * radius))
+    u = _capsules(shape, (1, 1, 1), segments)
+    image = np.where(u, 100.0, 20.0) + rng.normal(0, 8, shape)
+    points = [[xl, 28, 20.0], [xl, 28, 50.0], [32, 28, top + gap / 2], [xr, 28, 50.0],
+              [xr, 28, fork_z + 8]]
+    return image.astype(np.float32), {"shape": "cylinder",
+                                      "centerline": [p + [2.5] for p in points]}
+
+
 def _phantoms() -> list[tuple[str, np.ndarray, np.ndarray, dict, tuple]]:
     out = []
     for seed in range(4):
@@ -112,7 +138,11 @@ def _phantoms() -> list[tuple[str, np.ndarray, np.ndarray, dict, tuple]]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--no-real", action="store_true", help="the phantoms only")
+    ap.add_argument("--settings", nargs="+", metavar="FRACTION,RADII",
+                    help="these (branch_fraction, cut_radii) instead of SETTINGS")
     args = ap.parse_args()
+    settings = [tuple(map(float, x.split(","))) for x in args.settings] if args.settings \
+        else SETTINGS
     runs = _phantoms()
     if not args.no_real:
         from bench_real import clicks
@@ -127,7 +157,7 @@ def main() -> None:
             runs.append((f"trachea, {label}", image, truth, init, tuple(ct.spacing)))
     print("| branch_fraction, cut_radii | " + " | ".join(r[0] for r in runs) + " | time (s) |")
     print("|---" * (len(runs) + 2) + "|")
-    for fraction, radii in SETTINGS:
+    for fraction, radii in settings:
         params = RegionParams(branch_fraction=fraction, cut_radii=radii)
         t0, cells = time.perf_counter(), []
         for _, image, ref, click, sp in runs:

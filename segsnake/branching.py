@@ -8,16 +8,21 @@ lung2 trachea: every stage stopped by the iteration cap, 4 slices of both main b
 result). The division shows in the image itself: a cross-section of the tube in which what
 looks like the click falls apart into two sizeable pieces.
 
-:func:`find_cuts` walks the tube's cross-sections from its middle towards each end. A section is
-the disk of the ring's radius about the ring's centre, across the tube's tangent, sampled in the
-smoothed image; its *lumen pieces* are the connected components of the points the click's band
-calls inside (:func:`segsnake.region.region_density` < 0). A section *branches* when its second
-piece holds at least ``branch_fraction`` of the tube's lumen (the median of the largest pieces of
-the sections before it): both branches of a division are of the trunk's order of size, while a
-noise speck beside a tapering end is not (the S6 phantom's end at 0.6 x 0.6 x 2.5 mm: pieces of
-20 and 12 mm^2 where the lumen is 51). The first branching section is the cut: beyond its plane,
-within ``cut_radii`` lumen radii (of a disk of the lumen's area) of its centre, the density is that beyond the field of view
-(:class:`Cut`), so the tube's end is drawn back to the plane as to a face of the volume (both
+:func:`find_cuts` walks the tube's cross-sections from its middle towards each end, as the
+benchmark's trachea reference is tracked slice by slice from the top. A section is the disk of
+the ring's radius about the ring's centre, across the tube's tangent, sampled in the smoothed
+image; its *lumen pieces* are the connected components of the points the click's band calls
+inside (:func:`segsnake.region.region_density` < 0), and those that *continue* the lumen lie
+within a step or two of the previous section's lumen (a neighbour that the disk reaches
+alongside does not). A section *branches* when its second continuing piece holds at least
+``branch_fraction`` of the tube's lumen (the median of the lumen's areas before it): a
+division's branches are of the trunk's order of size, a noise speck beside a tapering end is not.
+It is a *division* when, over a lumen diameter past it, the tube keeps spanning both branches or
+keeps its centre on the wall between them; a tube whose centre enters one branch while the other
+leaves its section follows that branch (a centerline drawn from a trunk into one branch). Beyond
+the division's plane, within ``cut_radii`` lumen radii of its centre or a lumen radius past the
+tube's own reach beyond the plane, whichever is further, the density is that beyond the field of
+view (:class:`Cut`), so the tube's end is drawn back to the plane as to a face of the volume (both
 constants are :class:`segsnake.region.RegionParams`').
 """
 
@@ -29,12 +34,13 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from segsnake.profile import ring_centroids
 from segsnake.region import IntensityModel, RegionParams, region_density
 from segsnake.surfaces import CylinderModel
 
-__all__ = ["Cut", "find_cuts", "section_pieces"]
+__all__ = ["Cut", "Section", "find_cuts", "section"]
 
 
 @dataclass(frozen=True)
@@ -72,11 +78,27 @@ class Cut:
                    float(d["radius"]))
 
 
-def section_pieces(image_s: NDArray, spacing: Sequence[float], intensity: IntensityModel,
-                   centre: NDArray, tangent: NDArray, radius: float) -> NDArray:
-    """Areas (mm^2, largest first) of the lumen pieces of one cross-section: the connected
-    components of the disk of ``radius`` about ``centre`` across ``tangent`` where the click's
-    band calls the smoothed image inside; sampled at half the finest voxel size."""
+@dataclass(frozen=True)
+class Section:
+    """The lumen pieces of one cross-section: each piece's sample points (mm of scaled index
+    space, ``(k, 3)``), largest first, sampled ``h`` mm apart."""
+
+    pieces: list[NDArray]
+    h: float
+    #: whether the section's centre (the tube's) lies in a piece
+    centred: bool = False
+
+    @property
+    def areas(self) -> NDArray:
+        """The pieces' areas (mm^2)."""
+        return np.array([len(p) for p in self.pieces], dtype=float) * self.h * self.h
+
+
+def section(image_s: NDArray, spacing: Sequence[float], intensity: IntensityModel,
+            centre: NDArray, tangent: NDArray, radius: float) -> Section:
+    """The lumen pieces of one cross-section: the connected components of the disk of ``radius``
+    about ``centre`` across ``tangent`` where the click's band calls the smoothed image inside;
+    sampled at half the finest voxel size."""
     sp = np.asarray(spacing, dtype=float)
     t = tangent / np.linalg.norm(tangent)
     a = np.cross(t, np.eye(3)[int(np.argmin(np.abs(t)))])
@@ -92,7 +114,8 @@ def section_pieces(image_s: NDArray, spacing: Sequence[float], intensity: Intens
     inside = (region_density(values[None].astype(np.float32), intensity)[0] < 0) & \
         (U * U + V * V <= radius * radius)
     labels, count = ndimage.label(inside)
-    return np.sort(np.bincount(labels.ravel(), minlength=count + 1)[1:])[::-1] * h * h
+    pieces = [points[labels == k] for k in range(1, count + 1)]
+    return Section(sorted(pieces, key=len, reverse=True), h, bool(labels[n, n] > 0))
 
 
 def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
@@ -103,11 +126,9 @@ def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
     """The cut at each end of the tube that reached a division (``0``: the end ``v = 0``, ``1``:
     ``v = 1``).
 
-    Walking from the middle (``v = 1/2``) towards each end, the tube's *lumen* is the median of
-    the largest pieces of the sections walked, from the first that is one piece (its second, if
-    any, below ``branch_fraction`` of its largest); sections with no piece are passed over. The
-    division is the first section after that whose second piece holds ``branch_fraction`` of
-    the lumen.
+    Walking from the middle (``v = 1/2``) towards each end (see the module's notes), the lumen
+    is tracked from the first section that is one piece (its second, if any, below
+    ``branch_fraction`` of its largest); sections with no piece continuing it are passed over.
 
     Parameters
     ----------
@@ -122,7 +143,8 @@ def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
     branch_fraction : float
         A section branches when its second lumen piece holds this fraction of the lumen.
     cut_radii : float
-        The cut's reach beyond its plane, in radii of the lumen (of a disk of its area).
+        The cut's reach beyond its plane, in radii of the lumen (of a disk of its area); at
+        least the tube's own reach beyond the plane plus a lumen radius.
     step_mm : float, optional
         Sections every this many mm of the centerline (default: half the finest voxel size:
         just past a division the branches are a second piece over a fraction of a mm only).
@@ -142,20 +164,57 @@ def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
             model.control_points())  # (nu, n, 3)
         centres, tangents = ring_centroids(model, vs)
         radii = np.linalg.norm(rings - centres[None], axis=2).max(axis=0)
-        lumen: list[float] = []
-        for centre, tangent, radius in zip(centres, tangents, radii):
-            areas = section_pieces(image_s, sp, intensity, centre, tangent, float(radius))
-            if not len(areas):
-                continue
-            if not lumen:
-                if len(areas) == 1 or areas[1] < branch_fraction * areas[0]:
+        lumen: list[float] = []  # the areas of the lumen's piece in the sections walked
+        previous = None  # the last section's lumen (its points)
+        division = None  # a branching section not yet confirmed: (index, arc length)
+        for i, (centre, tangent, radius) in enumerate(zip(centres, tangents, radii)):
+            sec = section(image_s, sp, intensity, centre, tangent, float(radius))
+            areas = sec.areas
+            if previous is None:
+                if len(areas) == 1 or (len(areas) and areas[1] < branch_fraction * areas[0]):
                     lumen.append(float(areas[0]))
+                    previous = sec.pieces[0]
                 continue
+            # the pieces that continue the lumen, as the reference's slice-by-slice tracking
+            # reads it: a neighbour that the ring's disk reaches alongside does not
+            near = cKDTree(previous)
+            tol = 2 * step + 2 * sec.h
+            on = [p for p in sec.pieces
+                  if np.isfinite(near.query(p, distance_upper_bound=tol)[0]).any()]
+            if not on:
+                continue
+            on_areas = np.array([len(p) for p in on], dtype=float) * sec.h * sec.h
             trunk = float(np.median(lumen))
-            if len(areas) > 1 and areas[1] >= branch_fraction * trunk:
-                out = tangent / np.linalg.norm(tangent) * (1.0 if end else -1.0)
-                cuts[end] = Cut(tuple(map(float, centre)), tuple(map(float, out)),
-                                cut_radii * float(np.sqrt(trunk / np.pi)))
+            r = float(np.sqrt(trunk / np.pi))
+            branches = len(on) > 1 and on_areas[1] >= branch_fraction * trunk
+            if branches and division is None:
+                division = (i, abs(s[i] - s[0]))
+            elif division is not None and not branches and sec.centred:
+                # within a lumen diameter of the division the tube's centre entered one branch
+                # and the other left its section: it follows that branch (a centerline drawn
+                # from a trunk into one of its branches), no division for this tube
+                division = None
+            if division is None:
+                lumen.append(float(on_areas[0]))
+                previous = on[0]
+                continue
+            # a division while the tube spans both branches, or its centre stays on the wall
+            # between them, over a lumen diameter past it
+            previous = np.concatenate(on)
+            if abs(s[i] - s[0]) - division[1] >= 2 * r:
                 break
-            lumen.append(float(areas[0]))
+        if division is not None:
+            i = division[0]
+            centre, tangent = centres[i], tangents[i]
+            out = tangent / np.linalg.norm(tangent) * (1.0 if end else -1.0)
+            r = float(np.sqrt(float(np.median(lumen)) / np.pi))
+            # past the reach of the tube's end beyond the plane (from the division on): a tube
+            # that crept on across both branches is drawn back from all of it
+            tail = v[v >= vs[i]] if end else v[v <= vs[i]]
+            ends = model.grid_basis((np.arange(nu) + 0.5) / nu, tail).positions(
+                model.control_points()).reshape(-1, 3)
+            beyond = ends[(ends - centre) @ out > 0]
+            reach = float(np.linalg.norm(beyond - centre, axis=1).max()) if len(beyond) else 0.0
+            cuts[end] = Cut(tuple(map(float, centre)), tuple(map(float, out)),
+                            max(cut_radii * r, reach + r))
     return cuts

@@ -142,10 +142,9 @@ class RegionParams:
     #: lung2 carina's smaller: 0.6 of the trachea's), a noise speck or a ragged rim is not.
     branch_fraction: float = 0.25
     #: Beyond the plane of a tube's division the density is the field of view's within this many
-    #: lumen radii (of a disk of the lumen's area) of its centre: the branches' roots, which the
-    #: end would have to cross to reach them, and not much further (the radius of the ring at
-    #: the division, swollen where the tube had crept across both branches, reached another leg
-    #: of a U-shaped tube 20 mm away).
+    #: lumen radii (of a disk of the lumen's area) of its centre, or a lumen radius past the
+    #: tube's own reach beyond the plane, whichever is further: the branches' roots, which the
+    #: end would have to cross to reach them, and what the tube already crept into.
     cut_radii: float = 2.0
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from segsnake.branching import Cut, find_cuts, section_pieces
+from segsnake.branching import Cut, find_cuts, section
 from segsnake.config import SegmentConfig
 from segsnake.metrics import dice
 from segsnake.pipeline import segment_volume
@@ -41,10 +41,10 @@ def test_a_section_of_two_branches_has_two_pieces_and_one_of_the_trunk_one(y_tub
     model = IntensityModel(mu=100.0, sigma=8.0, range=200.0)
     image_s = smoothed(image, (1, 1, 1), 1.0)
     z, k = np.array([0.0, 0.0, 1.0]), _division(reference)
-    trunk = section_pieces(image_s, (1, 1, 1), model, np.array([32, 24, k + 15.0]), z, 10.0)
+    trunk = section(image_s, (1, 1, 1), model, np.array([32, 24, k + 15.0]), z, 10.0).areas
     # one piece, the click's band a little inside the blurred step of radius 6
     assert len(trunk) == 1 and np.pi * 4 ** 2 < trunk[0] < np.pi * 6 ** 2
-    below = section_pieces(image_s, (1, 1, 1), model, np.array([32, 24, k - 8.0]), z, 20.0)
+    below = section(image_s, (1, 1, 1), model, np.array([32, 24, k - 8.0]), z, 20.0).areas
     assert len(below) >= 2 and below[1] >= RegionParams.branch_fraction * trunk[0]
 
 
@@ -61,8 +61,10 @@ def test_a_tube_past_a_division_is_cut_there_and_one_short_of_it_not(y_tube, pas
     cut = cuts[1]
     assert np.dot(cut.normal, [0, 0, -1]) > 0.99  # pointing out of the tube, down
     assert k - 4 < cut.centre[2] < k + 2
-    # its reach: cut_radii radii of the trunk's lumen (the click's band, a little inside r = 6)
-    assert 4.5 * RegionParams.cut_radii < cut.radius < 6 * RegionParams.cut_radii
+    # its reach: past the tube's end beyond the plane (the rim of its end cap, a lumen radius
+    # of 4.5-6 mm further), and at least cut_radii lumen radii
+    rim = np.hypot(cut.centre[2] - (k - past), 6.0)
+    assert rim + 4.5 < cut.radius < rim + 6 and cut.radius > 4.5 * RegionParams.cut_radii
     short = CylinderModel.from_axis([32, 24, 71.0], [32, 24, k + 10.0], 6.0, 8, 8)
     assert find_cuts(short, image_s, (1, 1, 1), model) == {}
 
@@ -125,7 +127,21 @@ def test_a_centerline_drawn_into_one_branch_follows_it(sweep, seed):
     points = [top, (top + fork) / 2, fork, fork + 0.3 * (end - fork), fork + 0.6 * (end - fork)]
     res = segment_volume(image, (1, 1, 1), SegmentConfig.from_mapping(
         {"shape": "cylinder", "centerline": [list(p) + [2.5] for p in points]}))
-    # into the branch and out through the bottom face, not held back across it
+    # into the branch and out through the bottom face, not held back across it (a cut there
+    # once took the branch out of the mask: Dice 0.79); a single tube through the fork also
+    # takes some of the other branch's root (0.865 and 0.959 without any cut)
     assert res.settings["ends"] == ["field of view", "field of view"]
+    assert res.settings["restart"]["cuts"] == {}
     trunk_and_branch = sweep._capsules(image.shape, (1, 1, 1), segments[:2])
-    assert dice(res.mask, trunk_and_branch) >= 0.88
+    assert dice(res.mask, trunk_and_branch) >= 0.85
+
+
+@pytest.mark.slow
+def test_a_neighbour_alongside_is_no_branch(sweep):
+    # a U whose legs are 16 mm apart: the ring of the leg that does not divide reaches the other
+    # leg in its section, but that piece does not continue the lumen (it was cut there, Dice
+    # 0.885, before the pieces were tracked from section to section)
+    image, click = sweep.u_tube(16.0)
+    res = segment_volume(image, (1, 1, 1), SegmentConfig.from_mapping(click))
+    assert list(res.settings["restart"]["cuts"]) == ["1"]  # the right leg's division only
+    assert res.settings["ends"][1] == "branching"
