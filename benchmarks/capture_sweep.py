@@ -1,4 +1,4 @@
-"""The sweep behind ``pipeline.CAPTURE_CONTINUATION``: the fraction of its smoothing width at which
+"""The sweep behind ``edge_stages.CAPTURE_CONTINUATION``: the fraction of its smoothing width at which
 the edge stages' capture runs a second time (docs/design.md, "The edge stages").
 
     .venv/bin/python benchmarks/capture_sweep.py [--values 0.33 0.5 0.67 1] [--perturb 1e-12]
@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_robustness import cases, perturbed_gradients, run_case  # noqa: E402
-from segsnake import pipeline  # noqa: E402
+from segsnake import edge_stages  # noqa: E402
 
 
 def main() -> None:
@@ -32,7 +32,7 @@ def main() -> None:
     print("| continuation | suite | reach their goal | perturbed | least | largest difference |")
     print("|---|---|---|---|---|---|")
     for value in args.values:
-        pipeline.CAPTURE_CONTINUATION = value
+        edge_stages.CAPTURE_CONTINUATION = value
         for suite in ("tubes", "table72"):
             exact, perturbed = [], []
             for case in cases(suite, []):

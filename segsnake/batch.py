@@ -757,7 +757,8 @@ def _mp_context(runner: str) -> mp.context.BaseContext:
     # import cleanly here: the server skips ImportError, yet any other exception would kill it.
     module_name = runner.rpartition(":")[0]
     if runner == DEFAULT_RUNNER:
-        candidates = ["segsnake.io", "segsnake.metrics", "segsnake.pipeline", "segsnake.runner"]
+        candidates = ["segsnake.io", "segsnake.metrics", "segsnake.pipeline", "segsnake.stage",
+                      "segsnake.region_stages", "segsnake.edge_stages", "segsnake.runner"]
     elif module_name and not module_name.endswith(".py") and os.sep not in module_name:
         candidates = [module_name]
     else:

@@ -42,7 +42,7 @@ class OptimizeResult:
 
 
 #: A surface whose volume falls below this fraction of its start's collapsed (the end check of
-#: :func:`minimize_energy`; the region stages refuse such steps, ``pipeline._Admissible``).
+#: :func:`minimize_energy`; the region stages refuse such steps, ``stage.Admissible``).
 MIN_VOLUME_FRACTION = 0.02
 
 #: With ``stationary_tol``: iterations a minimization may go on after the relative-change or step

@@ -254,7 +254,7 @@ def load_snake(path: str) -> SplineSurface:
 
 def load_snake_and_record(path: str) -> tuple[SplineSurface, dict[str, Any] | None]:
     """:func:`load_snake`, and from the same reading of the file its ``restart`` record: what
-    defines the energy its last stage ended in (:func:`segsnake.pipeline._segment_region`), or
+    defines the energy its last stage ended in (:func:`segsnake.region_stages.segment_region`), or
     None for a markups file, a ``render`` output or a result without one."""
     doc = read_json(path, "snake file")
     if isinstance(doc, dict) and "markups" in doc:

@@ -8,7 +8,8 @@ from segsnake.config import SegmentConfig
 from segsnake.errors import SegmentationError
 from segsnake.metrics import dice, jaccard
 from segsnake.phantoms import make_phantom
-from segsnake.pipeline import _center_and_axis, segment_volume
+from segsnake.edge_stages import _center_and_axis
+from segsnake.pipeline import segment_volume
 
 
 def _segment(ph, seed, region_params=None, **options):
@@ -64,11 +65,11 @@ def test_a_normal_near_a_pole_does_not_freeze_the_refinement(kind, start):
 
 
 def test_fold_check_rows_leave_out_the_pole_intervals():
-    from segsnake.pipeline import _Admissible
+    from segsnake.stage import Admissible
     from segsnake.surfaces import CylinderModel, SphereModel
 
     def rows(model):
-        return _Admissible(model, np.array([1e9, 1e9])).n0.shape[1]
+        return Admissible(model, np.array([1e9, 1e9])).n0.shape[1]
 
     # three grid rows per knot interval: two intervals left out at each pole, one when M2 = 4
     # (two would leave nothing to check), none for a cylinder
@@ -77,7 +78,7 @@ def test_fold_check_rows_leave_out_the_pole_intervals():
 
 
 def test_an_edge_stage_refuses_a_fold_and_a_region_stage_prices_it_instead():
-    from segsnake.pipeline import _Admissible
+    from segsnake.stage import Admissible
     from segsnake.surfaces import SphereModel
 
     ball = SphereModel.ellipsoid((20, 20, 20), (10, 10, 10))
@@ -85,19 +86,19 @@ def test_an_edge_stage_refuses_a_fold_and_a_region_stage_prices_it_instead():
     top = dented[:, 2] > 20
     dented[top, 2] = 20 - 0.3 * (dented[top, 2] - 20)
     assert ball.with_params(dented).volume(order=8) > 0.2 * ball.volume(order=8)
-    assert not _Admissible(ball, np.array([1e9, 1e9]))(dented)  # normals turned over
-    assert _Admissible(ball, np.array([1e9, 1e9]), follow=True)(dented)
+    assert not Admissible(ball, np.array([1e9, 1e9]))(dented)  # normals turned over
+    assert Admissible(ball, np.array([1e9, 1e9]), follow=True)(dented)
     collapsed = ball.params.copy()
     collapsed[:, 2] = 20 + 0.01 * (collapsed[:, 2] - 20)  # flat: below MIN_VOLUME_FRACTION
-    assert not _Admissible(ball, np.array([1e9, 1e9]), follow=True)(collapsed)
+    assert not Admissible(ball, np.array([1e9, 1e9]), follow=True)(collapsed)
 
 
 def test_a_tube_ring_may_not_tilt_over_or_flatten():
-    from segsnake.pipeline import _Admissible
+    from segsnake.stage import Admissible
     from segsnake.surfaces import CylinderModel
 
     tube = CylinderModel.from_axis([0, 0, 0], [0, 0, 40], 5.0, m1=8, m2=4)
-    check = _Admissible(tube, np.array([1e9, 1e9]))
+    check = Admissible(tube, np.array([1e9, 1e9]))
     grid = tube.params.reshape(8, 7, 3)
 
     def with_row(l, factor):  # ring l scaled about its centre within its own plane
@@ -112,7 +113,7 @@ def test_a_tube_ring_may_not_tilt_over_or_flatten():
     tilted = grid.copy()  # the middle ring tilted beyond the plane of the tube's axis
     tilted[:, 3, 2] += 1.2 * tilted[:, 3, 0] * 40 / 4 / 5.0
     assert not check(tilted.reshape(-1, 3))
-    assert _Admissible(tube, np.array([1e9, 1e9]), follow=True)(with_row(3, 0.5))
+    assert Admissible(tube, np.array([1e9, 1e9]), follow=True)(with_row(3, 0.5))
 
 
 def test_a_region_stage_prices_a_surface_that_crosses_itself_instead_of_refusing_it():
@@ -121,7 +122,7 @@ def test_a_region_stage_prices_a_surface_that_crosses_itself_instead_of_refusing
     # takes the step (a refusal only kept the surface from crossing further; one that had
     # crossed stayed so, docs/benchmarks.md session 14), and its energy carries the price of
     # the crossing, crossing_weight per mm^3.
-    from segsnake.pipeline import _Admissible, _stage_energy
+    from segsnake.stage import Admissible, stage_energy
     from segsnake.rasterize import crossing_volume
     from segsnake.surfaces import CylinderModel
 
@@ -134,7 +135,7 @@ def test_a_region_stage_prices_a_surface_that_crosses_itself_instead_of_refusing
         moved[:, 0] += d * np.clip((13 - points[:, 0]) / 4, -1, 1) * (points[:, 2] < 36)
         return moved.reshape(start.params.shape)
 
-    assert _Admissible(start, np.array([1e9, 1e9]), follow=True)(legs_moved(8))
+    assert Admissible(start, np.array([1e9, 1e9]), follow=True)(legs_moved(8))
 
     class Volume:  # G = x: the flux is the volume integral of 1
         def sample(self, p):
@@ -143,8 +144,8 @@ def test_a_region_stage_prices_a_surface_that_crosses_itself_instead_of_refusing
     crossed = legs_moved(8)
     volume = crossing_volume(start.with_params(crossed))
     assert volume > 40.0
-    priced = _stage_energy(start, Volume(), 1.0, 4, None, region=True, crossing_weight=2.0)
-    free = _stage_energy(start, Volume(), 1.0, 4, None, region=True)
+    priced = stage_energy(start, Volume(), 1.0, 4, None, region=True, crossing_weight=2.0)
+    free = stage_energy(start, Volume(), 1.0, 4, None, region=True)
     assert priced.value_and_grad(crossed)[0] - free.value_and_grad(crossed)[0] == \
         pytest.approx(2.0 * volume)
     apart = legs_moved(4)  # narrowed in places, apart: no price
@@ -260,16 +261,16 @@ def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
     # tolerance between the two, the stage must move on to order 8 and stop there.
     from test_energy import AnalyticSampler
 
-    from segsnake import pipeline
+    from segsnake import stage
     from segsnake.energy import FluxTerm
     from segsnake.surfaces import SphereModel
 
-    monkeypatch.setattr(pipeline, "QUADRATURE_RTOL", 1e-4)
+    monkeypatch.setattr(stage, "QUADRATURE_RTOL", 1e-4)
     sampler = AnalyticSampler("blob", s=0.25)
     model = SphereModel.ellipsoid([0.1, -0.05, 0.0], [0.5, 0.6, 0.45], m1=6, m2=6)
-    assert pipeline.quadrature_order(1.5 * max(pipeline.longest_intervals(model)), 4.0) == 4
-    out, info = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
-                                    feature_mm=4.0)
+    assert stage.quadrature_order(1.5 * max(stage.longest_intervals(model)), 4.0) == 4
+    out, info = stage.run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
+                                feature_mm=4.0)
     checks = [c for c in info["quadrature_checks"] if c["when"] == "converged"]
     assert [c["order"] for c in checks] == [[4, 4], [8, 8]]
     assert checks[0]["relative_error"] > 1e-4 >= checks[1]["relative_error"]
@@ -279,10 +280,10 @@ def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
     # Checked while running (here after every iteration, with a tight tolerance), the
     # first round stops at its first iteration and the stage goes on at order 8, from the
     # last shape it trusted: the start (not from the step the coarse rule made).
-    monkeypatch.setattr(pipeline, "QUADRATURE_CHECK_EVERY", 1)
-    monkeypatch.setattr(pipeline, "QUADRATURE_RTOL_RUNNING", 1e-5)
+    monkeypatch.setattr(stage, "QUADRATURE_CHECK_EVERY", 1)
+    monkeypatch.setattr(stage, "QUADRATURE_RTOL_RUNNING", 1e-5)
     starts, ends = [], []
-    real = pipeline.minimize_energy
+    real = stage.minimize_energy
 
     def spy(m, energy, **kwargs):
         starts.append(m.params.copy())
@@ -290,9 +291,9 @@ def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
         ends.append(res.model.params.copy())
         return res
 
-    monkeypatch.setattr(pipeline, "minimize_energy", spy)
-    out, info = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
-                                    feature_mm=4.0)
+    monkeypatch.setattr(stage, "minimize_energy", spy)
+    out, info = stage.run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
+                                feature_mm=4.0)
     first = info["quadrature_checks"][0]
     assert first["when"] == "running" and first["order"] == [4, 4]
     assert first["relative_error"] > 1e-5
@@ -330,19 +331,19 @@ def test_seed_point_is_a_world_position_with_world(monkeypatch):
 def test_stage_stopped_by_the_iteration_cap_reports_its_quadrature():
     from test_energy import AnalyticSampler
 
-    from segsnake import pipeline
+    from segsnake import stage
     from segsnake.surfaces import SphereModel
 
     sampler = AnalyticSampler("blob", s=0.25)
     model = SphereModel.ellipsoid([0.1, -0.05, 0.0], [0.5, 0.6, 0.45], m1=6, m2=6)
     capped = SegmentConfig.from_mapping({"max_iter": 3})
-    _, info = pipeline._run_stage(model, sampler, -1.0, capped, None, None, 0.1, feature_mm=4.0)
+    _, info = stage.run_stage(model, sampler, -1.0, capped, None, None, 0.1, feature_mm=4.0)
     assert info["iterations"] == 3 and len(info["quadrature_checks"]) == 1
     # Checked even though the cap stopped it (with the running tolerance: it is still moving),
     # and resolved exactly when the check agreed.
     check = info["quadrature_checks"][0]
     assert check["when"] == "capped"
-    assert info["quadrature_resolved"] is (check["relative_error"] <= pipeline.QUADRATURE_RTOL_RUNNING)
-    _, full = pipeline._run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
-                                  feature_mm=4.0)
+    assert info["quadrature_resolved"] is (check["relative_error"] <= stage.QUADRATURE_RTOL_RUNNING)
+    _, full = stage.run_stage(model, sampler, -1.0, SegmentConfig(), None, None, 0.1,
+                              feature_mm=4.0)
     assert full["quadrature_resolved"] is True

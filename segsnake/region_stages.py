@@ -1,0 +1,362 @@
+"""The region stages: a filled object, sphere or tube, from its click (docs/design.md, "The
+region energy").
+
+:func:`segment_region` reads the click's intensity model, grows the surface with the click's
+band (the region stage), then puts it on the step with the two classes (the two-class rounds),
+and refines it on finer control grids (:func:`finer_grids`); a tube that reaches a division of
+its structure is held back there (:mod:`segsnake.branching`). Each stage is a
+:class:`segsnake.stage.Run` stage in a window around the surface (:mod:`segsnake.window`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from segsnake.distance import distance_within
+from segsnake.energy import FluxTerm
+from segsnake.errors import SegmentationError
+from segsnake.pipeline import SegmentResult, restart_options, usable_restart
+from segsnake.stage import (FOV_DENSITY, FOV_PAD, MAX_ORDER, REGULARIZATION, Run,
+                            longest_intervals, quadrature_order)
+from segsnake.surfaces import CylinderModel, SplineSurface, axial_rings, model_from_dict
+
+__all__ = ["segment_region", "finer_grids", "tube_rings", "tube_ends"]
+
+
+def segment_region(image, sp, config, model, progress, extra_energy, init_s,
+                    params=None, on_boundary: bool = False,
+                    init_record: dict | None = None) -> SegmentResult:
+    """The region energy from the click (:mod:`segsnake.region`, docs/design.md).
+
+    1. *Intensity model*: the robust Gaussian of the smoothed image in the click's core.
+    2. *Region*: the surface minimizes the volume integral of ``w``, the click's Gaussian
+       against a uniform outside: it fills what looks like the click and stops where the
+       intensity leaves the click's band, a little inside a blurred step.
+    3. *Two classes*: the outside's mean is read just outside that surface, averaged along it;
+       the same minimization with the inside's Gaussian against that local outside one (on the
+       image as acquired: smoothing would move a curved step inwards) puts the surface at the
+       midpoint intensity between the two, i.e. on the step (plus, with
+       ``edge_length_mm``, the flux of ``grad I`` over the step's peak gradient).
+
+    A tube that reaches a division of its structure (:mod:`segsnake.branching`, read after
+    stage 2 and after each round but the last) is held back beyond it from then on.
+
+    ``on_boundary`` (a saved result): stage 2 is skipped, the snake is already on the step.
+    ``init_record``: that result's ``restart`` record (:func:`restart_options`; in its
+    ``snake.json`` settings). When it was made on this image with these options for a snake of
+    this size, the run rebuilds the energy the result's last stage ended in (the intensity
+    model, the window, the last round's starting surface that placed the outside's shell, a
+    tube's cuts at its divisions, the stage's reference surface and quadrature order) and runs
+    only that stage, which checks
+    stationarity before its first step: a result comes back unchanged. Otherwise (a hand-edited
+    markups file, another size, image or options) the intensity model is read from the snake's
+    core and the two-class rounds run from it.
+
+    The last stage (the last round, or the finer grid kept) ends stationary
+    (:func:`segsnake.optimize.stationarity`), and its record is returned in ``settings``.
+    """
+    from segsnake import region as rg
+    from segsnake.branching import Cut, find_cuts
+    from segsnake.rasterize import rasterize
+    from segsnake.window import Window
+
+    p = params or rg.RegionParams()
+    report = progress or (lambda stage, frac: None)
+    run = Run(config, sp, image.shape, extra_energy, p)
+    init = model
+    run.timings["init_s"] = init_s
+    t0 = time.perf_counter()
+    image_s = rg.smoothed(image, sp, p.smooth_mm)
+    options = restart_options(image, sp, config, p)
+    restart, restart_use = usable_restart(init_record, options, model) if on_boundary \
+        else (None, None)
+    # where a tube branches, beyond which it is held back (segsnake.branching), by end
+    cuts: dict[int, Cut] = {}
+    if restart is not None:
+        window = Window(*(tuple(map(int, c)) for c in restart["window"]),
+                        tuple(map(int, image.shape)), sp)
+        intensity = rg.IntensityModel(**restart["intensity"])
+        cuts = {int(end): Cut.from_dict(c) for end, c in restart["cuts"].items()}
+    else:
+        window = Window.around(model, image.shape, sp, p.window_mm)
+        core = _click_core(window.model_in(model), window.shape, sp, p.core_fraction)
+        intensity = rg.IntensityModel.from_samples(image_s[window.slices][core],
+                                                   rg.image_range(image_s), p.min_sigma_fraction)
+        del core
+    run.timings["edge_map_s"] = time.perf_counter() - t0
+
+    def stage(start, density, name, tol=None, stationary=False, resume=None):
+        # One stage in a window around the surface; while its surface comes near a face of the
+        # window (which holds it back from then on), on from there in a window around both
+        # (segsnake.window).
+        nonlocal window
+        margin, used = p.window_mm, 0
+        while True:
+            run.lookup = None  # (the last stage's: not needed while this one's is built)
+
+            spent = []
+
+            def write(values, window=window):
+                # the density straight into the lookup's array, +1 in its padding
+                t0 = time.perf_counter()
+                values[...] = FOV_DENSITY
+                inner = values[(slice(FOV_PAD, -FOV_PAD or None),) * 3]
+                density(window, inner)
+                for cut in cuts.values():
+                    cut.apply(inner, window.lo, sp, FOV_DENSITY)
+                spent.append(time.perf_counter() - t0)
+
+            t0 = time.perf_counter()
+            lookup = run.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
+            run.timings["edge_map_s"] += sum(spent)
+            run.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
+            # (a surface that comes near a face of the window leaves the stage at once: its
+            # further course would be the window's, not the image's)
+            model = window.model_out(run.region(
+                window.model_in(start), lookup, name, tol, stationary, resume,
+                leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm), used=used))
+            del lookup
+            if not window.reaches(model, p.shell_mm):
+                return model
+            last = run.history[-1]
+            last["window_grown"] = True
+            old, margin = window, 2 * margin  # (a surface that grows far needs few windows)
+            window = window.union(Window.around(model, image.shape, sp, margin))
+            resume = None
+            if last.get("left"):
+                # Up to here the window's energy was the whole volume's: the stage goes on from
+                # this iterate with the same functional (reference surface, quadrature order).
+                reference = window.model_in(old.model_out(run.last["reference"]))
+                start, resume = model, (reference, tuple(run.last["order"]))
+                used += last["iterations"]
+            else:  # (ended near a face it never came near while running: afresh)
+                used = 0
+
+    def branching(model):
+        # A tube that reached a division of its structure ends there (the first cut found at
+        # an end stays: the rounds after it draw the tube back to it).
+        if model.kind == "cylinder":
+            for end, cut in find_cuts(model, image_s, sp, intensity, p.branch_fraction,
+                                      p.cut_radii).items():
+                cuts.setdefault(end, cut)
+
+    report("region", 0.1)
+    if not on_boundary:
+        model = stage(model, lambda win, out: rg.region_density(image_s[win.slices], intensity,
+                                                                out),
+                      "region", p.interim_tol)
+        if model.kind == "cylinder" and config.m2 is None:
+            # Now that the tube's calibre is known: rings a radius apart along it.
+            from segsnake.resample import interpolate_tube
+
+            m2 = tube_rings(model)
+            if m2 != model.m2:
+                model = interpolate_tube(model, m2)
+        branching(model)
+    report("two classes", 0.5)
+
+    def inside_and_shell(surface, win):
+        # The voxels inside the surface, and the shell between shell_gap_mm and shell_mm
+        # outside it where the outside is read, on the window's grid.
+        inside = rasterize(win.model_in(surface), win.shape, sp)
+        shell = distance_within(inside, sp, p.shell_mm)
+        return inside, (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
+
+    last = p.two_class_rounds - 1
+    final, record = None, None  # (the last stage's run.last, and its restart record)
+    # (a restart: only the last round, its outside read around the surface the saved one read)
+    for k in range(last if restart else 0, p.two_class_rounds + 1):
+        # The outside, read beyond the current surface; after the last round it scores the
+        # result (an inside that does not differ from its outside found no boundary).
+        run.lookup = None  # (the last stage's lookup is done with)
+        t0 = time.perf_counter()
+        start, win = model, window
+        if restart is not None and k == last:
+            start = model_from_dict(restart["round_start"])
+        sub = image_s[win.slices]
+        inside, shell = inside_and_shell(start, win)
+        if not inside.any():
+            raise SegmentationError("the surface encloses no voxel centre")
+        if not shell.any():
+            raise SegmentationError("the surface filled the whole image: no outside to compare")
+        contrast, polarity = rg.step_contrast(sub, inside, shell)
+        if contrast < p.min_separation * intensity.sigma:
+            # (a click alone started from one tissue's ball: an object of several needs a radius)
+            hint = " or give --radii (the click alone found one tissue's ball)" \
+                if config.center is not None and config.radii is None and not on_boundary \
+                and model.kind == "sphere" else ""
+            raise SegmentationError(
+                f"no boundary found: inside and outside the surface differ by {contrast:.3g}, "
+                f"{contrast / intensity.sigma:.2f} x the click's spread; check the "
+                f"initialization{hint}")
+        if config.polarity in ("bright", "dark"):
+            polarity = 1 if config.polarity == "bright" else -1
+        if k == p.two_class_rounds:
+            separated = rg.class_separation(sub, inside, shell)
+            run.timings["edge_map_s"] += time.perf_counter() - t0
+            break
+        run.timings["edge_map_s"] += time.perf_counter() - t0
+
+        def density(w_win, out, shell=shell):
+            # The two classes with the outside read around the round's starting surface (in a
+            # grown window, read again there).
+            if w_win != win:
+                shell = inside_and_shell(start, w_win)[1]
+            sub = image_s[w_win.slices]
+            mu_out = rg.local_outside_mean(sub, shell, sp, p.outside_smooth_mm)
+            rg.two_class_blend(image[w_win.slices], sub, intensity, mu_out, out)
+            del mu_out
+            if p.edge_length_mm > 0:
+                out += rg.edge_density(image[w_win.slices], sp, polarity, contrast,
+                                       p.edge_length_mm, p.edge_smooth_mm)
+
+        del inside
+        resume = None
+        if restart is not None:
+            resume = (model_from_dict(restart["reference"]), tuple(restart["order"]))
+        model = stage(model, density, f"two classes, round {k + 1}",
+                      None if k == last else p.interim_tol, stationary=k == last, resume=resume)
+        del density, shell
+        if k == last:
+            # The result's energy: its record (lookup from these, reference, order).
+            final, round_start, final_window = run.last, start, window
+        else:
+            branching(model)
+        # (a tube's rings along follow its calibre: its finer grids are finer around only)
+        if k == last and config.coarse_to_fine and config.m1 is None \
+                and (config.m2 is None or model.kind == "cylinder"):
+            finer, kept = finer_grids(run, window.model_in(model), p)
+            model, final = window.model_out(finer), kept or final
+    # The last pass of the loop rasterized the final surface (and checked it is not empty).
+    mask = win.embed(inside)
+    del inside, shell
+    report("done", 1.0)
+    on_step = rg.boundary_fraction(image_s, model, sp, polarity,
+                                   p.step_spreads * intensity.sigma, p.step_depth_mm)
+    if final is not None:
+        record = {**options, "intensity": intensity.to_dict(),
+                  "window": [list(final_window.lo), list(final_window.hi)],
+                  "round_start": round_start.to_dict(), "stage": final["stage"],
+                  "cuts": {str(end): cut.to_dict() for end, cut in cuts.items()},
+                  "reference": final["reference"].to_dict(), "order": final["order"]}
+    else:  # (no two-class round: the region stage's result, no record)
+        final = run.last
+    settings = {"energy": "region", "intensity_model": intensity.to_dict(),
+                "contrast": contrast, "separation": contrast / intensity.sigma,
+                # (null for two constant classes: JSON has no infinity)
+                "class_separation": separated if math.isfinite(separated) else None,
+                "boundary_fraction": on_step, "window": [list(window.lo), list(window.hi)],
+                "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p),
+                "restart": record}
+    if on_boundary:
+        settings["restart_record"] = restart_use
+    if model.kind == "cylinder":
+        settings["ends"] = tube_ends(model, image.shape, sp)
+        from segsnake.profile import ring_centroids
+
+        for end, cut in cuts.items():
+            # (an end that had crept far past the division before it was seen may stay there)
+            c = ring_centroids(model, np.array([float(end)]))[0][0]
+            if abs(np.dot(c - cut.centre, cut.normal)) <= cut.radius / p.cut_radii:
+                settings["ends"][end] = "branching"
+    return SegmentResult(model, mask, final["energy"], run.iterations, run.history,
+                         run.timings, "bright" if polarity > 0 else "dark", init, settings)
+
+
+def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
+    """Coarse to fine: the last stage again on finer control grids (``p.finer_m``: M1 = M2 for a
+    sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started
+    from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
+    it refines the surface: it lowers the image energy (where it fits just as well, the two
+    surfaces nearly agree, so the choice does not flip the result), and the volume it encloses
+    stays within ``p.finer_volume`` of the coarser surface's (detail comes back as bulges and
+    necks whose volumes nearly cancel; a leak into a neighbour or a fold through itself moves
+    the whole volume). The first grid refused ends the schedule, as does a finer stage that
+    fails (a collapse). Returns the surface and the ``run.last`` of the finer stage kept (None
+    if none)."""
+    from segsnake.resample import resample
+
+    lookup, kept = run.lookup, None
+
+    def image_energy(m: SplineSurface, order: int) -> float:
+        flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
+        return flux.value_and_grad(m.params)[0]
+
+    tube = model.kind == "cylinder"
+    for m in p.finer_m:
+        if m <= (model.m1 if tube else min(model.m1, model.m2)):
+            continue
+        m2 = model.m2 if tube else m
+        last, name = run.last, f"grid {m}x{m2}"
+        try:
+            finer = run.region(resample(model, m, m2), lookup, name, stationary=True)
+        except SegmentationError as exc:
+            # (a finer surface that collapsed through itself is no refinement either)
+            run.history.append({"stage": name, "kept": False, "error": str(exc)})
+            break
+        # both on the finer grid's nodes: intervals of the coarser one's size or less
+        order = min(2 * quadrature_order(float(longest_intervals(finer).max()),
+                                         p.edge_smooth_mm), MAX_ORDER)
+        e, e_fine = image_energy(model, order), image_energy(finer, order)
+        gain = (e - e_fine) / max(abs(e), 1e-300)
+        volume = abs(model.volume(order=4))
+        change = (finer.volume(order=4) - volume) / max(volume, 1e-300)
+        keep = bool(gain > 0.0 and abs(change) <= p.finer_volume)
+        run.history[-1].update(image_energy_gain=gain, volume_change=change, kept=keep)
+        if not keep:
+            run.last = last  # (the result's energy stays the coarser stage's)
+            break
+        model, kept = finer, run.last
+    return model, kept
+
+
+def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:
+    """The voxels of the initial surface shrunk by ``fraction`` (grown back towards the whole
+    surface until it holds enough voxels for a spread): a sphere about its centre, a tube about
+    its centerline (each ring about its own centre, so that a curved tube's core stays in it)."""
+    from segsnake.rasterize import rasterize
+    from segsnake.region import MIN_SAMPLES
+
+    C = model.control_points()
+    for f in (fraction, 0.5 * (1 + fraction), 1.0):
+        if model.kind == "cylinder":  # every control point is free: the grid is the params
+            rings = C.mean(axis=0, keepdims=True)
+            shrunk = model.with_params((rings + f * (C - rings)).reshape(-1, 3))
+        else:
+            centre = C.reshape(-1, 3).mean(axis=0)
+            shrunk = model.transformed(f * np.eye(3), (1 - f) * centre)
+        core = rasterize(shrunk, shape, spacing)
+        if core.sum() >= MIN_SAMPLES:
+            break
+    return core
+
+
+def tube_rings(model: CylinderModel) -> int:
+    """M2 for a tube (:func:`segsnake.surfaces.axial_rings`) from its centerline (the rings'
+    mean points, at 4 samples per knot interval) and its mean distance from it."""
+    from segsnake.profile import ring_centroids
+
+    nu, v = 4 * model.m1, np.linspace(0.0, 1.0, 4 * model.m2 + 1)
+    rings, _, _ = model.evaluate(np.arange(nu) / nu, v)  # (nu, nv, 3)
+    centres = ring_centroids(model, v)[0]
+    length = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
+    return axial_rings(length, float(np.linalg.norm(rings - centres, axis=2).mean()))
+
+
+def tube_ends(model: CylinderModel, shape: Sequence[int], spacing: Sequence[float]) -> list[str]:
+    """How each end of a tube (``v = 0``, then ``v = 1``) ended: ``"field of view"`` when its
+    ring's mean point lies within the padding beyond the volume's faces (:data:`FOV_PAD` voxels)
+    of a face, or outside, else ``"structure"`` (the image energy stopped it)."""
+    from segsnake.profile import ring_centroids
+
+    sp = np.asarray(spacing, dtype=float)
+    far = (np.asarray(shape) - 1) * sp
+    margin = FOV_PAD * sp
+    return ["field of view" if np.any(c <= margin) or np.any(c >= far - margin) else "structure"
+            for c in ring_centroids(model, np.array([0.0, 1.0]))[0]]
