@@ -51,6 +51,8 @@ class Cut:
     centre: tuple[float, float, float]
     normal: tuple[float, float, float]
     radius: float
+    #: the tube's lumen radius there (of a disk of its area): how near the plane an end is on it
+    lumen_radius: float
 
     def apply(self, out: NDArray, lo: Sequence[int], spacing: Sequence[float],
               value: float) -> None:
@@ -69,13 +71,21 @@ class Cut:
             (dx * dx + dy * dy + dz * dz <= self.radius ** 2)
         out[tuple(slice(a, b) for a, b in zip(first, last))][cut] = value
 
+    def holds(self, point: NDArray) -> bool:
+        """Whether a tube's end whose ring is centred at ``point`` ends on the division: within
+        a lumen radius of its plane (an end that had crept far past it before it was seen may
+        stay there)."""
+        offset = np.asarray(point, dtype=float) - np.asarray(self.centre)
+        return abs(float(offset @ np.asarray(self.normal))) <= self.lumen_radius
+
     def to_dict(self) -> dict:
-        return {"centre": list(self.centre), "normal": list(self.normal), "radius": self.radius}
+        return {"centre": list(self.centre), "normal": list(self.normal), "radius": self.radius,
+                "lumen_radius": self.lumen_radius}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Cut":
         return cls(tuple(map(float, d["centre"])), tuple(map(float, d["normal"])),
-                   float(d["radius"]))
+                   float(d["radius"]), float(d["lumen_radius"]))
 
 
 @dataclass(frozen=True)
@@ -216,5 +226,5 @@ def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
             beyond = ends[(ends - centre) @ out > 0]
             reach = float(np.linalg.norm(beyond - centre, axis=1).max()) if len(beyond) else 0.0
             cuts[end] = Cut(tuple(map(float, centre)), tuple(map(float, out)),
-                            max(cut_radii * r, reach + r))
+                            max(cut_radii * r, reach + r), r)
     return cuts

@@ -261,9 +261,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         from segsnake.profile import ring_centroids
 
         for end, cut in cuts.items():
-            # (an end that had crept far past the division before it was seen may stay there)
-            c = ring_centroids(model, np.array([float(end)]))[0][0]
-            if abs(np.dot(c - cut.centre, cut.normal)) <= cut.radius / p.cut_radii:
+            if cut.holds(ring_centroids(model, np.array([float(end)]))[0][0]):
                 settings["ends"][end] = "branching"
     return SegmentResult(model, mask, final["energy"], run.iterations, run.history,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)

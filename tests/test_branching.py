@@ -71,7 +71,7 @@ def test_a_tube_past_a_division_is_cut_there_and_one_short_of_it_not(y_tube, pas
 
 def test_a_cut_holds_back_the_half_ball_beyond_its_plane():
     out = np.zeros((20, 20, 20), np.float32)
-    cut = Cut((10.0, 10.0, 10.0), (0.0, 0.0, -1.0), 5.0)
+    cut = Cut((10.0, 10.0, 10.0), (0.0, 0.0, -1.0), 5.0, 2.0)
     cut.apply(out, (0, 0, 0), (1, 1, 1), 1.0)
     i, j, k = np.indices(out.shape)
     want = (k < 10) & ((i - 10) ** 2 + (j - 10) ** 2 + (k - 10) ** 2 <= 25)
@@ -87,6 +87,9 @@ def test_a_cut_holds_back_the_half_ball_beyond_its_plane():
     want = (pts[..., 2] < 0) & ((pts ** 2).sum(-1) <= 25)
     assert np.array_equal(aniso == 1, want)
     assert Cut.from_dict(cut.to_dict()) == cut
+    # an end within a lumen radius of the plane, on either side, is on the division
+    assert cut.holds((13.0, 9.0, 8.5)) and cut.holds((10.0, 10.0, 11.5))
+    assert not cut.holds((10.0, 10.0, 7.0))
 
 
 def test_a_tube_clicked_in_the_trunk_ends_at_the_division(y_tube):
