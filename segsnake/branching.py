@@ -101,7 +101,12 @@ class Section:
     @property
     def areas(self) -> NDArray:
         """The pieces' areas (mm^2)."""
-        return np.array([len(p) for p in self.pieces], dtype=float) * self.h * self.h
+        return _areas(self.pieces, self.h)
+
+
+def _areas(pieces: list[NDArray], h: float) -> NDArray:
+    """The areas (mm^2) of pieces sampled ``h`` mm apart."""
+    return np.array([len(p) for p in pieces], dtype=float) * h * h
 
 
 def section(image_s: NDArray, spacing: Sequence[float], intensity: IntensityModel,
@@ -124,7 +129,11 @@ def section(image_s: NDArray, spacing: Sequence[float], intensity: IntensityMode
     inside = (region_density(values[None].astype(np.float32), intensity)[0] < 0) & \
         (U * U + V * V <= radius * radius)
     labels, count = ndimage.label(inside)
-    pieces = [points[labels == k] for k in range(1, count + 1)]
+    # the points of each piece at once (a noisy section holds many specks): sorted by label
+    flat = labels.ravel()
+    order = np.argsort(flat, kind="stable")
+    sizes = np.bincount(flat, minlength=count + 1)
+    pieces = np.split(points.reshape(-1, 3)[order], np.cumsum(sizes)[:-1])[1:]
     return Section(sorted(pieces, key=len, reverse=True), h, bool(labels[n, n] > 0))
 
 
@@ -193,7 +202,7 @@ def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
                   if np.isfinite(near.query(p, distance_upper_bound=tol)[0]).any()]
             if not on:
                 continue
-            on_areas = np.array([len(p) for p in on], dtype=float) * sec.h * sec.h
+            on_areas = _areas(on, sec.h)
             trunk = float(np.median(lumen))
             r = float(np.sqrt(trunk / np.pi))
             branches = len(on) > 1 and on_areas[1] >= branch_fraction * trunk
