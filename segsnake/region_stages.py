@@ -37,7 +37,9 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     1. *Intensity model*: the robust Gaussian of the smoothed image in the click's core.
     2. *Region*: the surface minimizes the volume integral of ``w``, the click's Gaussian
        against a uniform outside: it fills what looks like the click and stops where the
-       intensity leaves the click's band, a little inside a blurred step.
+       intensity leaves the click's band, a little inside a blurred step. A sphere grows in
+       passes, each at most ``growth_mm`` beyond where the pass before stopped, so that it
+       stops at the first boundary around the click.
     3. *Two classes*: the outside's mean is read just outside that surface, averaged along it;
        the same minimization with the inside's Gaussian against that local outside one (on the
        image as acquired: smoothing would move a curved step inwards) puts the surface at the
@@ -146,11 +148,33 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                       p.cut_radii).items():
                 cuts.setdefault(end, cut)
 
+    def grow(model):
+        # The region stage in passes, each within growth_mm beyond its starting surface (a
+        # sphere; a tube's start already spans its structure along the user's line).
+        if model.kind != "sphere" or p.growth_mm <= 0:
+            return stage(model, lambda win, out: rg.region_density(image_s[win.slices],
+                                                                   intensity, out),
+                         "region", p.interim_tol)
+        # (each pass that goes on moves the surface out; it cannot cross the image more than
+        # once: the count only bounds the time)
+        passes = math.ceil(math.dist((0, 0, 0), np.multiply(image.shape, sp)) / p.growth_mm)
+        for k in range(passes):
+            start, before = model, abs(model.volume())
+
+            def density(win, out, start=start):
+                rg.region_density(image_s[win.slices], intensity, out)
+                inside = rasterize(win.model_in(start), win.shape, sp)
+                out[~np.isfinite(distance_within(inside, sp, p.growth_mm))] = FOV_DENSITY
+
+            model = stage(start, density, f"region, pass {k + 1}", p.interim_tol)
+            run.history[-1]["volume_mm3"] = after = abs(model.volume())
+            if after < before * (1 + p.growth_stop):
+                break
+        return model
+
     report("region", 0.1)
     if not on_boundary:
-        model = stage(model, lambda win, out: rg.region_density(image_s[win.slices], intensity,
-                                                                out),
-                      "region", p.interim_tol)
+        model = grow(model)
         if model.kind == "cylinder" and config.m2 is None:
             # Now that the tube's calibre is known: rings a radius apart along it.
             from segsnake.resample import interpolate_tube

@@ -121,8 +121,11 @@ def test_region_stages_put_the_surface_on_the_step(kind, options, start):
     # where the intensity leaves the click's band, about 1.5 mm inside (0.85-0.9).
     assert dice(res.mask, truth) >= 0.98
     stages = [h["stage"] for h in res.history]
-    assert stages[:4] == ["region"] + [f"two classes, round {k}" for k in (1, 2, 3)]
-    assert all(s.startswith("grid ") for s in stages[4:])  # coarse to fine, then
+    passes = [s for s in stages if s.startswith("region, pass ")]
+    assert stages[:len(passes)] == [f"region, pass {k}" for k in range(1, len(passes) + 1)]
+    rest = stages[len(passes):]
+    assert rest[:3] == [f"two classes, round {k}" for k in (1, 2, 3)]
+    assert all(s.startswith("grid ") for s in rest[3:])  # coarse to fine, then
     assert res.settings["energy"] == "region" and res.settings["separation"] > 5
     only_first = segment_volume(ph.image, ph.spacing, config,
                                 region_params=RegionParams(two_class_rounds=0))
@@ -250,3 +253,31 @@ def test_a_small_ball_is_segmented_at_its_size(seed):
     res = segment_volume(ph.image, ph.spacing, config)
     assert res.model.volume() / (4 / 3 * np.pi * r ** 3) == pytest.approx(1.0, abs=0.05)
     assert dice(res.mask, ph.truth.astype(bool)) > 0.92  # measured 0.935-0.944 (0.87-0.89)
+
+
+def test_a_sphere_grows_from_its_click_in_passes_each_within_its_band():
+    # The region stage in passes: each minimizes the click's band energy with everything
+    # farther than growth_mm beyond its starting surface counted as outside, so that the
+    # sphere's equivalent radius grows by at most growth_mm per pass.
+    ph = make_phantom("ball", seed=3, noise=0.1)
+    truth = ph.truth.astype(bool)
+    r0, band = 3.0, 3.0
+    config = SegmentConfig.from_mapping({**ph.init, "radii": [r0] * 3, "coarse_to_fine": False})
+    res = segment_volume(ph.image, ph.spacing, config, region_params=RegionParams(growth_mm=band))
+    passes = [h for h in res.history if h["stage"].startswith("region")]
+    assert [h["stage"] for h in passes] == [f"region, pass {k}"
+                                            for k in range(1, len(passes) + 1)]
+    radii = [r0] + [(3 * h["volume_mm3"] / (4 * math.pi)) ** (1 / 3) for h in passes]
+    steps = np.diff(radii)
+    # (the band is read on voxel centres: half a voxel's slack)
+    assert len(passes) >= 3 and steps.max() <= band + 0.5 and steps[0] > band - 1.0
+    # the last pass added less than growth_stop (1 %) of the volume: it ended on the ball
+    assert radii[-1] / radii[-2] < 1.01 ** (1 / 3) + 1e-9
+    assert dice(res.mask, truth) >= 0.98
+    # One unbounded pass (growth_mm 0) goes as far in one stage on this ball, which has nothing
+    # of its intensity beyond it.
+    whole = segment_volume(ph.image, ph.spacing, config, region_params=RegionParams(
+        growth_mm=0.0))
+    assert [h["stage"] for h in whole.history][0] == "region"
+    assert not any(h["stage"].startswith("region, pass") for h in whole.history)
+    assert dice(whole.mask, res.mask) > 0.99
