@@ -78,11 +78,11 @@ class RegionParams:
     #: staying those its calibre chose (docs/benchmarks.md, session 13: the perfect-edge trachea
     #: 0.949 -> 0.959, curved tubes' diameters within 5 % in 9 of 12 runs instead of 7) ...
     finer_m: tuple[int, ...] = (13, 17)
-    #: ... each kept while it lowers the image energy (where it fits no better it buys nothing,
-    #: and where it fits just as well the two surfaces nearly agree: the choice does not flip
-    #: the result; a threshold of 1 % did, session 10) and *refines* the surface rather than
-    #: moving it: the volume it encloses stays within this fraction of the coarser grid's
-    #: (dimensionless, |V_fine - V_coarse| / V_coarse).
+    #: ... each kept while it *refines* the surface rather than moving it: the volume it
+    #: encloses stays within this fraction of the coarser grid's (dimensionless, |V_fine -
+    #: V_coarse| / V_coarse). (No test on the image energy's gain: on a near-tie it flipped
+    #: results, a 1 % threshold in session 10, its sign on two sphere phantoms under 1e-12
+    #: gradient perturbations in session 18; docs/design.md, "Coarse to fine".)
     #: Detail that a coarser grid smoothed over comes back as bulges and as the necks between
     #: them, which nearly cancel in volume; a finer grid that leaks through a gap into a
     #: neighbour of the same intensity, or folds through itself, changes the volume by as much

@@ -295,9 +295,9 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``: M1 = M2 for a
     sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started
     from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
-    it refines the surface: it lowers the image energy (where it fits just as well, the two
-    surfaces nearly agree, so the choice does not flip the result), and the volume it encloses
-    stays within ``p.finer_volume`` of the coarser surface's (detail comes back as bulges and
+    it refines the surface: the volume it encloses stays within ``p.finer_volume`` of the
+    coarser surface's (no test on the image energy's gain, which is recorded: on a near-tie it
+    flips the result; docs/design.md, "Coarse to fine"; detail comes back as bulges and
     necks whose volumes nearly cancel; a leak into a neighbour or a fold through itself moves
     the whole volume). The first grid refused ends the schedule, as does a finer stage that
     fails (a collapse). Returns the surface and the ``run.last`` of the finer stage kept (None
@@ -329,7 +329,7 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
         gain = (e - e_fine) / max(abs(e), 1e-300)
         volume = abs(model.volume(order=4))
         change = (finer.volume(order=4) - volume) / max(volume, 1e-300)
-        keep = bool(gain > 0.0 and abs(change) <= p.finer_volume)
+        keep = bool(abs(change) <= p.finer_volume)
         run.history[-1].update(image_energy_gain=gain, volume_change=change, kept=keep)
         if not keep:
             run.last = last  # (the result's energy stays the coarser stage's)
