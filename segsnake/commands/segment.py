@@ -93,8 +93,8 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
     m.add_argument("--coarse-to-fine", action=argparse.BooleanOptionalAction, default=None,
                    help="region energy: a sphere without --m1/--m2 tries 13 x 13, then "
                         "17 x 17 after 9 x 9; a tube without --m1 tries 13, then 17 control "
-                        "points around after 8; each kept while it lowers the image energy and "
-                        "keeps the enclosed volume within 10 %% (finer detail, not a leak; on "
+                        "points around after 8; each kept while it keeps the enclosed volume "
+                        "within 10 %% (finer detail, not a leak; on "
                         "by default, --no-coarse-to-fine keeps the first grid)")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
     _position(m, "--seed-point", "keep only the detected surface nearest this voxel")
