@@ -226,7 +226,7 @@ def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
             i = division[0]
             centre, tangent = centres[i], tangents[i]
             out = tangent / np.linalg.norm(tangent) * (1.0 if end else -1.0)
-            r = float(np.sqrt(float(np.median(lumen)) / np.pi))
+            # (r: the lumen's radius, from the trunk's areas, which stop growing at a division)
             # past the reach of the tube's end beyond the plane (from the division on): a tube
             # that crept on across both branches is drawn back from all of it
             tail = v[v >= vs[i]] if end else v[v <= vs[i]]

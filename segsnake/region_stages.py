@@ -148,6 +148,12 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                       p.cut_radii).items():
                 cuts.setdefault(end, cut)
 
+    def beyond(surface, win, max_mm):
+        # The voxels inside the surface on the window's grid, and the distance (mm) of those
+        # outside it up to max_mm (inf farther).
+        inside = rasterize(win.model_in(surface), win.shape, sp)
+        return inside, distance_within(inside, sp, max_mm)
+
     def grow(model):
         # The region stage in passes, each within growth_mm beyond its starting surface (a
         # sphere; a tube's start already spans its structure along the user's line).
@@ -163,8 +169,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
 
             def density(win, out, start=start):
                 rg.region_density(image_s[win.slices], intensity, out)
-                inside = rasterize(win.model_in(start), win.shape, sp)
-                out[~np.isfinite(distance_within(inside, sp, p.growth_mm))] = FOV_DENSITY
+                out[~np.isfinite(beyond(start, win, p.growth_mm)[1])] = FOV_DENSITY
 
             model = stage(start, density, f"region, pass {k + 1}", p.interim_tol)
             run.history[-1]["volume_mm3"] = after = abs(model.volume())
@@ -188,8 +193,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     def inside_and_shell(surface, win):
         # The voxels inside the surface, and the shell between shell_gap_mm and shell_mm
         # outside it where the outside is read, on the window's grid.
-        inside = rasterize(win.model_in(surface), win.shape, sp)
-        shell = distance_within(inside, sp, p.shell_mm)
+        inside, shell = beyond(surface, win, p.shell_mm)
         return inside, (shell > p.shell_gap_mm) & (shell <= p.shell_mm)
 
     last = p.two_class_rounds - 1
