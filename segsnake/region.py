@@ -68,23 +68,22 @@ class RegionParams:
     #: Two-class stages, each reading the outside afresh beyond the previous one's surface (a
     #: surface inside the step reads part of the object as outside, which pulls it inwards).
     two_class_rounds: int = 3
-    #: Coarse to fine (``coarse_to_fine``, on by default; ``--no-coarse-to-fine``; see
-    #: docs/benchmarks.md, "Coarse to fine with a volume test": it raises the perfect-edge Dice
-    #: of five of the six sphere structures and the brain's from every click, and lowers three
-    #: deep-structure results that had leaked at 9 x 9 by 0.006-0.014): after the two-class
-    #: rounds on the 9 x 9 grid (a sphere whose M1, M2 are not given), the last round again on
-    #: these finer grids (M1 = M2) in turn, each from the L2 projection of the surface before
-    #: it; a tube's (M1 not given) on these numbers of control points around, its rings along
-    #: staying those its calibre chose (docs/benchmarks.md, session 13: the perfect-edge trachea
-    #: 0.949 -> 0.959, curved tubes' diameters within 5 % in 9 of 12 runs instead of 7) ...
-    finer_m: tuple[int, ...] = (13, 17)
+    #: Coarse to fine (``coarse_to_fine``, on by default; ``--no-coarse-to-fine``;
+    #: docs/design.md, "Coarse to fine"): after the two-class rounds on the 9 x 9 grid (a sphere
+    #: whose M1, M2 are not given), the last round again on these finer grids (M1 = M2) in
+    #: turn, each from the surface before it (:attr:`long_axis_poles`); a tube's (M1 not given)
+    #: on these numbers of control points around, its rings along staying those its calibre
+    #: chose. The schedule ends at the first grid refused (:attr:`finer_volume`), at the first
+    #: that gains less than :attr:`finer_gain`, or at its last, 37: about 1.5 mm between control
+    #: points on the hippocampus, the edge term's smoothing width (docs/benchmarks.md, session 19).
+    finer_m: tuple[int, ...] = (13, 17, 21, 25, 29, 33, 37)
     #: ... each kept while it *refines* the surface rather than moving it: the volume it
     #: encloses stays within this fraction of the coarser grid's (dimensionless, |V_fine -
-    #: V_coarse| / V_coarse). (No test on the image energy's gain: on a near-tie it flipped
-    #: results, a 1 % threshold in session 10, its sign on two sphere phantoms under 1e-12
-    #: gradient perturbations in session 18; docs/design.md, "Coarse to fine".)
-    #: Detail that a coarser grid smoothed over comes back as bulges and as the necks between
-    #: them, which nearly cancel in volume; a finer grid that leaks through a gap into a
+    #: V_coarse| / V_coarse). (No test on the image energy's gain for keeping a grid: on a
+    #: near-tie it flipped results, a 1 % threshold in session 10, its sign on two sphere
+    #: phantoms under 1e-12 gradient perturbations in session 18; docs/design.md, "Coarse to
+    #: fine".) Detail that a coarser grid smoothed over comes back as bulges and as the necks
+    #: between them, which nearly cancel in volume; a finer grid that leaks through a gap into a
     #: neighbour of the same intensity, or folds through itself, changes the volume by as much
     #: as it moves the surface. Measured on the real benchmark's sphere cases (docs/benchmarks.md,
     #: "Coarse to fine with a volume test"): every finer grid that raised a perfect-edge Dice
@@ -92,6 +91,20 @@ class RegionParams:
     #: themselves by 15 % to 10 x. Every result is the same from 10 % to 15 %, and all but one
     #: from 7.5 % to 30 % (a thalamus grid at +7.7 %, a caudate one at +15 %).
     finer_volume: float = 0.1
+    #: The schedule goes on past a kept grid while that grid lowered the image energy by at
+    #: least this fraction of it (dimensionless, (E_coarse - E_fine) / |E_coarse| at a common
+    #: quadrature): a grid that gains less shows the detail left is below what the next one
+    #: would pay for in time (each finer grid costs more than the one before; the gains fall
+    #: steadily, 2-15 % at 13 x 13 to below 1 % by 25-33 on the perfect-edge structures).
+    #: The grid that gained less is kept: this only decides whether to try the next.
+    finer_gain: float = 0.01
+    #: A sphere's first finer grid is fitted to the surface with its poles at the ends of the
+    #: surface's long axis (:func:`segsnake.resample.poles_on_long_axis`) rather than projected
+    #: with the poles where the click's ball had them (the image's third axis): an elongated
+    #: structure's rings then run around it, where they are short (the perfect-edge
+    #: hippocampus, 53 x 34 x 15 mm: 0.941 -> 0.970). The finer grids after it are exact L2
+    #: projections (:func:`segsnake.resample.resample`).
+    long_axis_poles: bool = True
     #: Relative energy change per iteration at which the stages before the last stop: each
     #: only places the surface for the next one's reading of the outside (measured on a lobed
     #: blob: the first stage crept by 4e-5 per iteration for 200 iterations into the lobes,

@@ -297,16 +297,18 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
 
 def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``: M1 = M2 for a
-    sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started
-    from the exact L2 projection of the current surface (:mod:`segsnake.resample`), kept while
-    it refines the surface: the volume it encloses stays within ``p.finer_volume`` of the
-    coarser surface's (no test on the image energy's gain, which is recorded: on a near-tie it
-    flips the result; docs/design.md, "Coarse to fine"; detail comes back as bulges and
-    necks whose volumes nearly cancel; a leak into a neighbour or a fold through itself moves
-    the whole volume). The first grid refused ends the schedule, as does a finer stage that
-    fails (a collapse). Returns the surface and the ``run.last`` of the finer stage kept (None
+    sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started from the
+    current surface: a sphere's first finer grid fitted with its poles on the surface's long
+    axis (``p.long_axis_poles``, :func:`segsnake.resample.poles_on_long_axis`), every other
+    from the exact L2 projection (:func:`segsnake.resample.resample`). A grid is kept while it
+    refines the surface: the volume it encloses stays within ``p.finer_volume`` of the coarser
+    surface's (detail comes back as bulges and necks whose volumes nearly cancel; a leak into a
+    neighbour or a fold through itself moves the whole volume). The first grid refused ends
+    the schedule, as does a finer stage that fails (a collapse), and a kept grid whose image
+    energy gain (recorded) is below ``p.finer_gain``: the next is not tried (docs/design.md,
+    "Coarse to fine"). Returns the surface and the ``run.last`` of the finer stage kept (None
     if none)."""
-    from segsnake.resample import resample
+    from segsnake.resample import poles_on_long_axis, resample
 
     lookup, kept = run.lookup, None
 
@@ -320,8 +322,11 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
             continue
         m2 = model.m2 if tube else m
         last, name = run.last, f"grid {m}x{m2}"
+        # (a sphere's first finer grid: its poles move to the ends of the surface's long axis)
+        start = poles_on_long_axis(model, m, m2) \
+            if not tube and kept is None and p.long_axis_poles else resample(model, m, m2)
         try:
-            finer = run.region(resample(model, m, m2), lookup, name, stationary=True)
+            finer = run.region(start, lookup, name, stationary=True)
         except SegmentationError as exc:
             # (a finer surface that collapsed through itself is no refinement either)
             run.history.append({"stage": name, "kept": False, "error": str(exc)})
@@ -339,6 +344,8 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
             run.last = last  # (the result's energy stays the coarser stage's)
             break
         model, kept = finer, run.last
+        if gain < p.finer_gain:
+            break
     return model, kept
 
 

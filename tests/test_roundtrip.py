@@ -25,7 +25,7 @@ from segsnake.config import SegmentConfig
 from segsnake.errors import ConfigError
 from segsnake.metrics import evaluate_masks
 from segsnake.phantoms import make_phantom
-from segsnake.resample import resample
+from segsnake.resample import poles_on_long_axis, resample
 from segsnake.saved_snake import load_snake, snake_markups
 from segsnake.surfaces import CylinderModel, SphereModel
 
@@ -72,6 +72,28 @@ def test_resample_is_exact_on_its_spaces():
     err = {m: np.abs(world_samples(resample(bumpy, m, m)) - world_samples(bumpy)).max()
            for m in (7, 18)}
     assert err[18] < err[7] < 1.0
+
+
+def test_poles_on_long_axis_move_the_poles_to_the_ends_of_an_elongated_surface():
+    """A cigar whose poles lie on its short axis (the click's ball had them on the image's
+    third axis) gets them at the ends of its long axis, on the same surface; the L2 projection
+    keeps them where they were."""
+    centre, axes = np.array([1.0, 2.0, 3.0]), np.array([30.0, 8.0, 6.0])
+    cigar = SphereModel.ellipsoid(centre, axes, m1=9, m2=9)
+    moved = poles_on_long_axis(cigar, 13, 13)
+    assert (moved.m1, moved.m2) == (13, 13)
+    ends = sorted(moved.pole(p)[0] - centre[0] for p in ("cN", "cS"))
+    assert np.allclose(ends, [-30.0, 30.0], atol=0.3)
+    for p in ("cN", "cS"):
+        assert np.allclose(moved.pole(p)[1:], centre[1:], atol=0.3)
+    # On the ellipsoid to the fit's error (measured: its implicit radius off by 0.5 % at the
+    # median, 4.6 % at most on the flanks, where the 9 x 9 mesh's parameterization stretches;
+    # the volume 1.5 % short).
+    level = np.sqrt(np.sum(((world_samples(moved) - centre) / axes) ** 2, axis=-1))
+    assert np.median(np.abs(level - 1)) < 0.01 and np.abs(level - 1).max() < 0.06
+    assert abs(abs(moved.volume()) / abs(cigar.volume()) - 1) < 0.02
+    projected = resample(cigar, 13, 13)
+    assert abs(abs(projected.pole("cN")[2] - centre[2]) - 6.0) < 1e-6
 
 
 # ------------------------------------------------------------------------------ markups

@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         if m.kind != first.kind:
             raise InputError(f"{path}: a {m.kind}; {args.snakes[0]} is a {first.kind} (all snakes "
                              f"must be of one kind)")
-    # (coarse to fine ends on 9 x 9, 13 x 13 or 17 x 17 as each image allows: one size for all)
+    # (coarse to fine ends on 9 x 9 to 37 x 37 as each image allows: one size for all)
     models, moved = _one_size(models)
     first = models[0]
     sm = build_shape_model(models, sources=list(args.snakes), align=args.align)
