@@ -49,26 +49,21 @@ def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> 
         return _CACHE[key]
     u, wu = gauss_legendre_grid(model.m1, order)
     v, wv = gauss_legendre_grid(model.m2, order)
-    Bu = [model._basis_u(u, k) for k in range(3)]
-    Bv = [model._basis_v(v, k) for k in range(3)]
-    A = model.constraint.toarray()  # (M1 * L, P)
-    W = (wu[:, None] * wv[None, :]).ravel()
+    A = model.constraint  # (M1 * L, P), sparse
 
-    def sampling(ku: int, kv: int) -> NDArray:
-        # Samples of sigma's (ku, kv) derivative at the nodes, per coordinate: (Nq, P); one
-        # factor at a time (in one sum: 1.1 s for a 17 x 17 grid's matrices, 0.05 s so).
-        return np.einsum("uk,vl,kl...->uv...", Bu[ku], Bv[kv],
-                         A.reshape(model.m1, model.m2 + 3, -1),
-                         optimize=True).reshape(len(u) * len(v), -1)
+    def gram(ku: int, kv: int) -> NDArray:
+        # sum_q W_q s_q s_q^T over the samples s_q (rows of (Bu ⊗ Bv) A) of sigma's (ku, kv)
+        # derivative, per coordinate: A^T (Bu^T Wu Bu ⊗ Bv^T Wv Bv) A, the tensor product's
+        # Gram factors (a 37 x 37 grid's samples held 230 MB; the factors hold kilobytes).
+        bu, bv = model._basis_u(u, ku), model._basis_v(v, kv)
+        grid = np.kron((bu * wu[:, None]).T @ bu, (bv * wv[:, None]).T @ bv)
+        return np.asarray((A.T @ (A.T @ grid).T).T)
 
     hu, hv = 1.0 / model.m1, 1.0 / model.m2
-    # The Gram matrix D^T D of the weighted second-derivative samples, one derivative at a time
-    # (stacked, D held 3 x the nodes x P doubles: 31 MB for a 17 x 17 grid, twice over).
-    G = np.zeros((A.shape[1], A.shape[1]))
-    for (ku, kv), c in (((2, 0), hu * hu), ((1, 1), np.sqrt(2.0) * hu * hv), ((0, 2), hv * hv)):
-        S = sampling(ku, kv)
-        G += (c * c) * ((S * W[:, None]).T @ S)
-        del S
+    # The weighted second-derivative samples' Gram matrix, one derivative at a time.
+    G = sum((c * c) * gram(ku, kv)
+            for (ku, kv), c in (((2, 0), hu * hu), ((1, 1), np.sqrt(2.0) * hu * hv),
+                                ((0, 2), hv * hv)))
     if tube:
         # Each control ring's part beyond its best ellipse bends like the surface above; the
         # ellipses themselves (centre and axes, row by row) only pay for third differences
@@ -78,16 +73,15 @@ def bending_matrix(model: SplineSurface, order: int = 4, tube: bool = False) -> 
         T = np.kron(np.eye(model.m1), np.diff(np.eye(model.m2 + 3), n=3, axis=0)) @ ellipses
         K = R.T @ G @ R + T.T @ T / (model.m1 * model.m2)
     else:
-        S0 = sampling(0, 0)
-        sw = np.sqrt(W)
         ref = _reference(model)
-        ref_samples = S0 @ ref.params  # (Nq, 3)
-        X = np.column_stack([ref_samples, np.ones(len(ref_samples))])  # affine fit basis
-        # Weighted least-squares fit of the samples by X: coef = pinv(sw X) (sw S0 p).
-        fit = np.linalg.lstsq(sw[:, None] * X, sw[:, None] * S0, rcond=None)[0]  # (4, P)
-        # Parameters of the fitted affine image: points get the translation, vectors do not.
-        basis_params = np.column_stack([ref.params, (~ref.is_vector).astype(float)])  # (P, 4)
-        R = np.eye(A.shape[1]) - basis_params @ fit  # residual parameters, (P, P)
+        # The weighted least-squares affine fit of the samples: the fitted affine image of the
+        # reference has parameters basis @ fit, ``basis`` (P, 4) the reference's parameters and
+        # the translation (points get it, vectors do not), and
+        # fit = (basis^T M basis)^-1 basis^T M with M the samples' Gram matrix.
+        basis = np.column_stack([ref.params, (~ref.is_vector).astype(float)])
+        M = gram(0, 0)
+        fit = np.linalg.solve(basis.T @ M @ basis, basis.T @ M)  # (4, P)
+        R = np.eye(A.shape[1]) - basis @ fit  # residual parameters, (P, P)
         K = R.T @ G @ R
     K = 0.5 * (K + K.T)
     _CACHE[key] = K
