@@ -84,9 +84,8 @@ def main() -> None:
             except SegmentationError:
                 cells.append("fail")
                 continue
-            # (M1: a sphere's grid, a tube's points around, each schedule's last by default)
-            last = params.tube_finer_m if res.model.kind == "cylinder" else params.finer_m
-            grid = "" if res.model.m1 == max(last or (res.model.m1,)) \
+            # (M1: a sphere's grid, a tube's points around; both end at finer_m's last)
+            grid = "" if res.model.m1 == max(params.finer_m or (res.model.m1,)) \
                 else f"[{res.model.m1}]"
             cells.append(f"{dice(res.mask, truth):.3f}{grid}")
         print(f"{case['name']:24s} {' '.join(cells)}  ({time.perf_counter() - t0:.0f} s)",

@@ -71,18 +71,13 @@ class RegionParams:
     #: Coarse to fine (``coarse_to_fine``, on by default; ``--no-coarse-to-fine``;
     #: docs/design.md, "Coarse to fine"): after the two-class rounds on the 9 x 9 grid (a sphere
     #: whose M1, M2 are not given), the last round again on these finer grids (M1 = M2) in
-    #: turn, each from the surface before it (:attr:`long_axis_poles`). The schedule ends at
+    #: turn, each from the surface before it (:attr:`long_axis_poles`); a tube's (M1 not given)
+    #: on these numbers of control points around, its rings along staying those its calibre
+    #: chose. The schedule ends at
     #: the first grid refused (:attr:`finer_volume`), at the first that gains less than
     #: :attr:`finer_gain`, or at its last, 37: about 1.5 mm between control points on the
     #: hippocampus, the edge term's smoothing width (docs/benchmarks.md, session 19).
     finer_m: tuple[int, ...] = (13, 17, 21, 25, 29, 33, 37)
-    #: A tube's (M1 not given): these numbers of control points around in turn, each kept by
-    #: the volume test, its rings along staying those its calibre chose; no gain rule. A tube
-    #: is measured along its length (its profile), and a defect of a few rings barely moves the
-    #: whole tube's energy: with the gain rule the 1 mm arch phantom stopped at 13 points
-    #: around with a bulge of +46 % in its bend's diameter, which 17 removes (docs/benchmarks.md,
-    #: session 19; session 13 for 13 and 17).
-    tube_finer_m: tuple[int, ...] = (13, 17)
     #: ... each kept while it *refines* the surface rather than moving it: the volume it
     #: encloses stays within this fraction of the coarser grid's (dimensionless, |V_fine -
     #: V_coarse| / V_coarse). (No test on the image energy's gain for keeping a grid: on a

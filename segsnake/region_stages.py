@@ -297,16 +297,16 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
 
 def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``: M1 = M2 for a
-    sphere; ``p.tube_finer_m``: M1 around a tube, whose M2 stays the one its calibre chose),
-    each started from the current surface: a sphere's first finer grid fitted with its poles on
+    sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started from the
+    current surface: a sphere's first finer grid fitted with its poles on
     the surface's long axis (``p.long_axis_poles``,
     :func:`segsnake.resample.poles_on_long_axis`), every other from the exact L2 projection
     (:func:`segsnake.resample.resample`). A grid is kept while it refines the surface: the
     volume it encloses stays within ``p.finer_volume`` of the coarser surface's (detail comes
     back as bulges and necks whose volumes nearly cancel; a leak into a neighbour or a fold
     through itself moves the whole volume). The first grid refused ends the schedule, as does
-    a finer stage that fails (a collapse), and a sphere's kept grid whose image energy gain
-    (recorded) is below ``p.finer_gain``: the next is not tried (docs/design.md, "Coarse to
+    a finer stage that fails (a collapse), and a kept grid whose image energy gain (recorded)
+    is below ``p.finer_gain``: the next is not tried (docs/design.md, "Coarse to
     fine"). Returns the surface and the ``run.last`` of the finer stage kept (None if none)."""
     from segsnake.resample import poles_on_long_axis, resample
 
@@ -317,7 +317,7 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
         return flux.value_and_grad(m.params)[0]
 
     tube = model.kind == "cylinder"
-    for m in p.tube_finer_m if tube else p.finer_m:
+    for m in p.finer_m:
         if m <= (model.m1 if tube else min(model.m1, model.m2)):
             continue
         m2 = model.m2 if tube else m
@@ -344,7 +344,7 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
             run.last = last  # (the result's energy stays the coarser stage's)
             break
         model, kept = finer, run.last
-        if gain < p.finer_gain and not tube:
+        if gain < p.finer_gain:
             break
     return model, kept
 
