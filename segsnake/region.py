@@ -96,7 +96,7 @@ class RegionParams:
     #: least this fraction of it (dimensionless, (E_coarse - E_fine) / |E_coarse| at a common
     #: quadrature): a grid that gains less shows the detail left is below what the next one
     #: would pay for in time (each finer grid costs more than the one before; the gains fall
-    #: steadily, 2-15 % at 13 x 13 to below 1 % by 25-33 on the perfect-edge structures).
+    #: steadily, 1.6-15 % at 13 x 13 to below 1 % by 13-33 on the perfect-edge structures).
     #: The grid that gained less is kept: this only decides whether to try the next.
     finer_gain: float = 0.01
     #: A sphere's first finer grid is fitted to the surface with its poles at the ends of the

@@ -256,8 +256,9 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
             final, round_start, final_window = run.last, start, window
         else:
             branching(model)
-        # (a tube's rings along follow its calibre: its finer grids are finer around only)
-        if k == last and config.coarse_to_fine and config.m1 is None \
+        # (a tube's rings along follow its calibre: its finer grids are finer around only; a
+        # restart's record names the result's last stage, after which its schedule had ended)
+        if k == last and restart is None and config.coarse_to_fine and config.m1 is None \
                 and (config.m2 is None or model.kind == "cylinder"):
             finer, kept = finer_grids(run, window.model_in(model), p)
             model, final = window.model_out(finer), kept or final
