@@ -5,52 +5,81 @@ For a :class:`~segsnake.surfaces.CylinderModel` ``sigma(u, v)`` (in mm: world mm
 closed at its ends by planar caps through the end rings as its mask and volume are:
 
 * a **section** at a point ``p`` with unit normal ``T`` is the cut of that closed tube by the
-  plane ``(x - p) . T = 0``. For each ``u`` around, the ``v`` with ``(sigma(u, v) - p) . T = 0``
-  is bracketed on :data:`SECTION_BRACKETS` nodes per knot interval along ``v`` and solved by
-  safeguarded Newton on the exact spline (to rounding); the section curve ``q(u) = sigma(u,
-  v(u))`` has ``q' = sigma_u + sigma_v v'``, ``v' = -(sigma_u . T) / (sigma_v . T)``. Its
-  **area** and **centroid** are Green's formula in the plane (Gauss-Legendre, :data:`AREA_ORDER`
-  nodes per knot interval around, or along a capped section's arc: 1e-12 or better on the
-  tests' cylinders, capped sections included; where the cut crosses a knot line along ``v``
-  its integrand is only C1 there and the rule converges more slowly). The **equivalent
-  diameter** is ``2 sqrt(A / pi)``; the **minimum and maximum diameters** are the smallest and
-  largest caliper widths of the section curve: the width along :data:`CALIPER_DIRECTIONS`
-  directions over 180 degrees (every degree), each from :data:`CALIPER_SAMPLES` curve points
-  per knot interval around, both the extreme point of a direction and the extreme direction
-  refined by a parabola through their neighbours (below 1e-7 of the diameter on circles and on
-  ellipses of aspect 2 and 4, ``tests/test_profile.py``).
-* **Where the plane leaves the tube.** A section is first cut all around; if some line ``u =
-  const`` does not cross the plane, or the cut jumps (below), the plane may leave the tube
-  through an end cap: near an end whose cap is not normal to the centerline (a tube leaving
+  plane ``(x - p) . T = 0`` around ``p``: the cut of the **stretch** of tube between the last
+  ring behind the plane and the first ring ahead of it. A ring ``v = const`` of
+  :data:`SECTION_BRACKETS` nodes per knot interval bounds a stretch if it lies wholly on one
+  side of the plane (at every line ``u = const`` of the area's rule; an end ring lying in the
+  plane bounds one too); between two neighbouring
+  bounding rings on opposite sides every line ``u = const`` crosses the plane an odd number of
+  times and the cut is closed. Of those stretches (and the open ones of the next item) the
+  sample's is the one nearest to its own ``v``. Along a line the plane's distance is a cubic in
+  ``v`` on each knot interval: cut at its turning points, every crossing is found, to rounding
+  (safeguarded Newton). The section's **area** and **centroid** are its Green integrals in the
+  plane (``A = 1/2 int (a db - b da)`` and the first moments, ``a, b`` its coordinates), by
+  Stokes' theorem the integrals of ``J = (sigma_u x sigma_v) . T`` (the area form ``da ^ db``
+  on the surface) and of ``a J, b J`` over the part of the stretch behind the plane, less the
+  Green integrals along the bounding ring behind it: along each line a sum over its crossings
+  of those integrals up to the crossing, exact by Gauss-Legendre (:data:`BAND_ORDER` nodes per
+  knot interval along ``v``: polynomials there), then :data:`AREA_ORDER` nodes per knot
+  interval around (1e-12 or better on the tests' cylinders; where the cut crosses a knot line
+  along ``v`` the integrand around is only C1, and where a fold begins only continuous, so the
+  rule converges more slowly there). The area counts the plane's region with the number of
+  times the cut winds around it, as the mask's and the volume's integrals count a region the
+  surface wraps twice or inside out: the simple ring's area where the cut is one ring. The
+  **equivalent diameter** is ``2 sqrt(A / pi)``; the **minimum and maximum diameters** are the
+  smallest and largest caliper widths of the cut: the width along :data:`CALIPER_DIRECTIONS`
+  directions over 180 degrees (every degree), each from the crossings of
+  :data:`CALIPER_SAMPLES` lines ``u = const`` per knot interval around; where each line crosses
+  once, a curve in ``u`` whose extreme point of a direction and extreme direction are refined
+  by a parabola through their neighbours (below 1e-7 of the diameter on circles and on ellipses
+  of aspect 2 and 4, ``tests/test_profile.py``), else the samples' extremes (within ``(pi /
+  m)^2 / 2`` of the width).
+* **Where the plane leaves the tube.** If the sample's stretch reaches an end ring that
+  crosses the plane (no ring between lies wholly on one side), the plane may leave the tube
+  through that end's cap: near an end whose cap is not normal to the centerline (a tube leaving
   through an oblique face of the volume) the plane crosses the end ring twice, and the section
-  is the lateral cut on the arc between those crossings closed by the chord between them (the
+  is the lateral cut on the arc between those crossings (on each line ``u = const`` the
+  crossing nearest to the sample's ``v``; Green's formula along it, Gauss-Legendre,
+  :data:`AREA_ORDER` nodes per knot interval of the arc) closed by the chord between them (the
   cap's cut, exact for a planar cap): the section of the closed tube as its mask has it, and as
   a truth clipped to the volume has it. Such rows are **capped** (``TubeProfile.capped``; their
-  calipers are the samples' extremes, within ``(pi / m)^2 / 2`` of the width, as the corners
-  would throw a parabola off). The two samples at the centerline's very ends lie on the caps:
-  a cap not normal to the centerline cuts their plane through its middle (about half the
-  section, jumping with the least tilt), so they are left out rather than reported. A sample
-  whose plane has no single section (crosses an end ring more than twice, misses part of the
-  tube, or the cut jumps on every candidate) is **dropped** (its arc length is kept in
-  ``TubeProfile.dropped_mm``). If no sample is left (a tube so short that every plane crosses
-  both caps), the rows are the rings projected on the normal planes instead, flagged
+  calipers are the samples' extremes, as the corners would throw a parabola off). A capped cut
+  that jumps from one piece of the surface to another between neighbouring ``u`` (a chord
+  between neighbouring nodes more than twice the curve's ``|q'| du``), or that does not wind
+  around its sample (a plane through the other leg of a bend near its end crosses that end ring
+  too), is not a section. The two samples at the centerline's very ends lie on the caps: a cap
+  not normal to the centerline cuts their plane through its middle (about half the section,
+  jumping with the least tilt), so they are left out rather than reported. A sample whose
+  plane has no section (its stretch is bounded by rings on the same side, it crosses the end
+  ring other than twice, or no capped cut is a section) is **dropped** (its arc length is kept
+  in ``TubeProfile.dropped_mm``). If no sample is left (a tube so short that every plane
+  crosses both caps), the rows are the rings projected on the normal planes instead, flagged
   ``TubeProfile.projected``.
-* **Where the plane cuts the tube more than once** (a bend tighter than the plane's reach: the
-  other leg of an arch, a fold), the crossing nearest to the sample's own ``v`` is taken on each
-  line ``u = const`` and the row is flagged (``TubeProfile.crossed``). If that choice jumps
-  from one piece of the surface to another between neighbouring ``u`` (a chord between
-  neighbouring nodes more than twice the curve's ``|q'| du``), the cut is not a section.
+* **Where the plane cuts the tube more than once**: the other leg of an arch lies beyond a
+  bounding ring and is no part of the section; inside the stretch, where the surface folds over
+  itself (a pleat a segmentation leaves on the inner side of a tight bend, every line through it
+  crossing the plane three times, on three sheets less than a millimetre apart), the fold's
+  pieces count with their winding number (net once where the surface covers the tube three
+  times), so the section changes continuously as the plane sweeps over the fold, and no choice
+  between the sheets is made that rounding could flip. Both are flagged
+  (``TubeProfile.crossed``).
 * the **centerline** is the curve of the sections' centroids, found by iteration: start from
   the ring centroids ``c(v) = integral_0^1 sigma(u, v) du`` (exactly the Keys spline in ``v`` of
   each row's mean control point), then repeatedly cut sections normal to the current curve at
-  stations every ``min(spacing, length / (4 M2))`` mm and pass a cubic spline (chord length,
-  not-a-knot) through the centroids of the complete sections, until no centroid moves by more
-  than :data:`CENTERLINE_TOL_MM` (at most :data:`CENTERLINE_ITERATIONS` passes; a pass that
-  moves them more than the one before ends it, and the better curve is kept). A centroid more
-  than half its section's radius from its station is not followed (a pinched or folded
-  stretch). Beyond the first and last complete sections the curve goes straight on along its end
-  tangents to the end caps' planes (a capped section's centroid is off the axis: the cap cut
-  part of it). Why not the ring centroids: a ring's mean point is not its section's centroid
+  stations every ``min(spacing, length / (4 M2))`` mm and fit a cubic spline by least squares to
+  the centroids of the complete sections, at the stations' arc lengths, with the tube's own
+  resolution along its length (``M2`` knot intervals over its length, knots at the stations'
+  quantiles), until the curve moves by no more than :data:`CENTERLINE_TOL_MM` at the stations
+  (at most :data:`CENTERLINE_ITERATIONS` passes; a pass that moves it more than the one before
+  ends it, and the better curve is kept). Why not through every centroid: the centroids of
+  sections through a fold move by tenths of a millimetre within a millimetre (0.25 mm per mm in
+  the bend of issue 16's arch), and a spline through each station turned that into 26 degrees
+  between neighbouring samples' normals, their sections into 397-482 mm^2 where the tube has
+  430, and the next pass diverged; the surface itself has no detail finer than its knots. A
+  centroid more than half its section's radius from its station is not followed (a pinched or
+  folded stretch). Beyond the first and last complete sections the curve goes straight on along
+  its end tangents to the end caps' planes (a capped section's centroid is off the axis: the cap
+  cut part of it). Why not the ring centroids: a ring's mean point is not its section's centroid
   where the rings tilt (into an oblique face, across a bend) or their points bunch on one side,
   and a ring projected on the plane normal to that curve is not the section; a section's
   centroid is on the axis of any straight tube and on a torus' centre circle. With fewer than
@@ -63,12 +92,12 @@ closed at its ends by planar caps through the end rings as its mask and volume a
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import CubicSpline, make_lsq_spline
 
 from segsnake.basis import keys
 from segsnake.surfaces import CylinderModel, gauss_legendre_grid, orthonormal_pair
@@ -85,12 +114,17 @@ AREA_ORDER = 16
 #: Caliper widths: section points per knot interval around, directions over 180 degrees.
 CALIPER_SAMPLES = 32
 CALIPER_DIRECTIONS = 180
-#: Nodes per knot interval along ``v`` on which a plane's crossing of the surface is bracketed.
+#: Rings ``v = const`` per knot interval that may bound a section's stretch of tube; nodes along
+#: ``v`` on which a capped section's crossings are bracketed.
 SECTION_BRACKETS = 8
+#: Gauss-Legendre nodes per knot interval along ``v`` for a section's surface integrals (exact:
+#: their integrands are polynomials of degree <= 8 in ``v`` there).
+BAND_ORDER = 5
 #: Newton steps (bisection when a step leaves the bracket) for a crossing, at most.
 CROSSING_ITERATIONS = 60
-#: The centerline's iteration: passes at most, the centroid shift (mm) that ends it, and the
-#: Gauss-Legendre nodes per knot interval of its sections (centroids to ~1e-8 of the radius).
+#: The centerline's iteration: passes at most, the curve's shift at its stations (mm) that ends
+#: it, and the Gauss-Legendre nodes per knot interval of its sections (centroids to ~1e-8 of the
+#: radius).
 CENTERLINE_ITERATIONS = 12
 CENTERLINE_TOL_MM = 1e-3
 CENTERLINE_ORDER = 8
@@ -128,7 +162,8 @@ class TubeProfile:
     capped : ndarray (n,) of bool
         The section is closed by an end cap (its plane leaves the tube through an end ring).
     crossed : ndarray (n,) of bool
-        The plane also cuts the tube elsewhere (a tight bend); the nearest cut is the section.
+        The plane also cuts the tube elsewhere (the other leg of a bend), or a line ``u =
+        const`` crosses the section more than once (a fold, counted with its winding number).
     dropped_mm : ndarray (k,)
         Arc lengths of the samples left out: no single section there.
     projected : bool
@@ -457,20 +492,300 @@ def _chord(P: NDArray, Q: NDArray) -> tuple[NDArray, NDArray, NDArray]:
             -0.5 * (qa - pa) * (pb * pb + pb * qb + qb * qb) / 3.0)
 
 
-def _broken(s: NDArray, dq: NDArray, u: NDArray, closed: bool, tol: float) -> NDArray:
-    """Whether a cut jumps between two pieces of the surface (a plane that cuts the tube more
-    than once, where the crossing nearest to the sample's ``v`` is on one piece for some ``u``
-    and on another for the next): a chord between neighbouring nodes more than twice the
-    length ``|q'| du`` the curve would have there."""
-    if closed:
-        s = np.concatenate([s, s[:, :1]], axis=1)
-        dq = np.concatenate([dq, dq[:, :1]], axis=1)
-        u = np.concatenate([u, u[:, :1] + 1.0], axis=1)
+def _broken(s: NDArray, dq: NDArray, u: NDArray, tol: float) -> NDArray:
+    """Whether a capped section's arc jumps between two pieces of the surface (a plane that cuts
+    the tube more than once, where the crossing nearest to the sample's ``v`` is on one piece for
+    some ``u`` and on another for the next): a chord between neighbouring nodes more than twice
+    the length ``|q'| du`` the curve would have there."""
     with np.errstate(invalid="ignore"):
         chord = np.linalg.norm(np.diff(s, axis=1), axis=-1)
         speed = np.linalg.norm(dq, axis=-1)
         expect = 0.5 * (speed[:, 1:] + speed[:, :-1]) * np.diff(u, axis=1)
         return np.any(chord > 2.0 * expect + 1e3 * tol, axis=1)
+
+
+# --------------------------------------------------------------------------------------------
+# A section as the cut of the stretch of tube between two rings on either side of its plane
+# --------------------------------------------------------------------------------------------
+
+#: The Keys weights of the four control rows ``l0 - 1 .. l0 + 2`` of the knot interval ``l0``
+#: as cubics in ``tau = M2 v - l0`` in [0, 1]: ``w_j(tau) = sum_k KEYS_POWER[j, k] tau^k``.
+KEYS_POWER = np.array([[0.0, -0.5, 1.0, -0.5], [1.0, 0.0, -2.5, 1.5],
+                       [0.0, 0.5, 2.0, -1.5], [0.0, 0.0, -0.5, 0.5]])
+
+
+@dataclass
+class _Bands:
+    """Which stretch of the tube each station's section is cut from (see :func:`_bands`)."""
+
+    full: NDArray      # a closed section: between the rings v = lo and v = hi
+    lo: NDArray
+    hi: NDArray
+    side: NDArray      # the sign of (x - p) . t on the ring lo (the ring hi has the other)
+    ends: NDArray      # (n, 2): not full, the open stretch reaches the v = 0 / v = 1 end ring
+    crossed: NDArray   # the plane crosses more than one stretch of the tube
+
+    def take(self, idx: NDArray) -> "_Bands":
+        return _Bands(*(getattr(self, f.name)[idx] for f in fields(self)))
+
+
+def _bands(surf: _Surface, R: NDArray, p: NDArray, t: NDArray, v0: NDArray) -> _Bands:
+    """For each plane ``(x - p_i) . t_i = 0``, the stretch of tube its section is cut from.
+
+    A ring ``v = const`` of the :attr:`_Surface.vgrid` nodes is **one-sided** if it lies wholly
+    on one side of the plane (every line of ``R``, the columns ``(nu, L, 3)`` of the lines ``u =
+    const``, more than the zero distance from it); an end ring lying in the plane (every line
+    within it) bounds a stretch too. Between two neighbouring bounding rings of opposite sides
+    the plane's cut is closed (every line crosses it an odd number of times): a **full**
+    stretch. Between the end ring and the first bounding ring, where the end ring crosses the
+    plane, the cut ends on the end ring: the stretch is **open** at that end (an end cap closes
+    the section there). Between two bounding rings on the same side the cut is only pieces of
+    surface poking through the plane (no section). The station's stretch is the full or open
+    one nearest to ``v0[i]`` in ``v`` (the one holding it if any; a full one on a tie); an open
+    one is given by the ends it reaches (both if no ring bounds).
+    """
+    n, vg = len(p), surf.vgrid
+    g_n = len(vg)
+    c = np.zeros((n, g_n), dtype=int)
+    flat = np.zeros((n, g_n), dtype=bool)
+    block = max(1, int(4_000_000 // (len(R) * g_n)))
+    for a in range(0, n, block):
+        b = min(n, a + block)
+        rows = np.einsum("uld,nd->nul", R, t[a:b]) - np.einsum("nd,nd->n", p[a:b],
+                                                               t[a:b])[:, None, None]
+        f = (rows.reshape(-1, rows.shape[-1]) @ surf.Bgrid.T).reshape(b - a, len(R), g_n)
+        fmin, fmax = f.min(axis=1), f.max(axis=1)
+        c[a:b] = np.where(fmin > surf.zero, 1, np.where(fmax < -surf.zero, -1, 0))
+        flat[a:b] = (fmin >= -surf.zero) & (fmax <= surf.zero)
+    bound = c != 0
+    bound[:, [0, -1]] |= flat[:, [0, -1]]  # an end ring in the plane
+    k = np.arange(g_n)
+    # The next bounding ring above each node (g_n: none) and its side.
+    at = np.where(bound, k, g_n)
+    nxt = np.concatenate([np.minimum.accumulate(at[:, :0:-1], axis=1)[:, ::-1],
+                          np.full((n, 1), g_n)], axis=1)
+    c_next = np.take_along_axis(c, np.minimum(nxt, g_n - 1), axis=1)
+    pair = bound & (nxt < g_n)
+    full = pair & ((c * c_next < 0) | ((c == 0) != (c_next == 0)))  # opposite, or a flat end
+    crossing = (pair & ((nxt > k + 1) | (c * c_next < 0))).sum(axis=1)
+    anyb = bound.any(axis=1)
+    first = np.where(anyb, np.argmax(bound, axis=1), g_n - 1)
+    last = np.where(anyb, g_n - 1 - np.argmax(bound[:, ::-1], axis=1), 0)
+    open0, open1 = ~anyb | (first > 0), ~anyb | (last < g_n - 1)  # the end rings crossing
+    crossing += open0.astype(int) + (open1 & anyb)
+    # The stretch nearest to v0: how far v0 is from each (0 inside it).
+    above = vg[np.minimum(nxt, g_n - 1)]
+    dist = np.where(full, np.maximum(np.maximum(vg - v0[:, None], v0[:, None] - above), 0.0),
+                    np.inf)
+    best = np.argmin(dist, axis=1)
+    rows = np.arange(n)
+    d0 = np.where(open0, np.maximum(v0 - vg[first], 0.0), np.inf)
+    d1 = np.where(open1, np.maximum(vg[last] - v0, 0.0), np.inf)
+    is_full = dist[rows, best] <= np.minimum(d0, d1)  # a tie: the full one
+    side = np.where(c[rows, best] != 0, c[rows, best], -c_next[rows, best])  # flat lo: far side
+    ends = np.column_stack([open0 & (d0 <= d1), open1 & (d1 <= d0)]) & ~is_full[:, None]
+    return _Bands(full=is_full, lo=np.where(is_full, vg[best], 0.0),
+                  hi=np.where(is_full, above[rows, best], 0.0),
+                  side=np.where(is_full, side, 1).astype(float), ends=ends, crossed=crossing > 1)
+
+
+def _band_pairs(m2: int, lo: NDArray, hi: NDArray, nu: int
+                ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Every (station, line, knot interval) of the stretches ``[lo_i, hi_i]`` along ``nu``
+    lines, in that order: station, line, interval ``l`` and its part ``[alpha, beta]`` in the
+    stretch."""
+    la = np.clip(np.floor(m2 * lo).astype(int), 0, m2 - 1)
+    lb = np.maximum(np.clip(np.ceil(m2 * hi).astype(int) - 1, 0, m2 - 1), la)
+    span = lb - la + 1
+    count = span * nu
+    st = np.repeat(np.arange(len(lo)), count)
+    k = np.arange(len(st)) - np.repeat(np.cumsum(count) - count, count)
+    line, l = k // span[st], la[st] + k % span[st]
+    alpha = np.maximum(l / m2, lo[st])
+    beta = np.maximum(np.minimum((l + 1) / m2, hi[st]), alpha)
+    return st, line, l, alpha, beta
+
+
+def _line_points(m2: int, R: NDArray, Ru: NDArray | None, line: NDArray, l: NDArray,
+                 v: NDArray) -> tuple[NDArray, ...]:
+    """sigma (and sigma_u, sigma_v with ``Ru``) at ``v`` on the lines ``line`` (columns ``R``,
+    ``Ru``), ``v`` in the knot interval ``l``."""
+    tau = m2 * v - l
+    powers = np.stack([np.ones_like(tau), tau, tau * tau, tau * tau * tau], axis=-1)
+    cols = l[:, None] + np.arange(4)[None, :]
+    rows = R[line[:, None], cols]  # (N, 4, 3)
+    s = np.einsum("nj,njd->nd", powers @ KEYS_POWER.T, rows)
+    if Ru is None:
+        return (s,)
+    dpow = np.stack([np.zeros_like(tau), np.ones_like(tau), 2 * tau, 3 * tau * tau], axis=-1)
+    return (s, np.einsum("nj,njd->nd", powers @ KEYS_POWER.T, Ru[line[:, None], cols]),
+            np.einsum("nj,njd->nd", m2 * (dpow @ KEYS_POWER.T), rows))
+
+
+def _band_roots(surf: _Surface, R: NDArray, p: NDArray, t: NDArray, bands: _Bands
+                ) -> tuple[tuple[NDArray, ...], tuple[NDArray, ...]]:
+    """Every crossing of the lines (columns ``R (nu, L, 3)``) with each plane inside its full
+    stretch, exactly: along a line the plane distance is a cubic on each knot interval, cut
+    at its turning points into monotone pieces, each piece's sign change solved by safeguarded
+    Newton to rounding (no pair of crossings is missed however close). A distance within the
+    zero distance counts as on the far side from the ring ``lo``'s, but on the ring ``lo``
+    itself (a line touching the plane crosses it twice at one point, or not at all).
+
+    Returns the pairs of :func:`_band_pairs` and, per crossing, ``(pair, v, eps)``: ``eps`` is
+    +1 where the line leaves the ring ``lo``'s side going up ``v``, -1 where it comes back."""
+    m2 = surf.model.m2
+    pairs = _band_pairs(m2, bands.lo, bands.hi, len(R))
+    st, line, l, alpha, beta = pairs
+    if not len(st):
+        return pairs, (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0))
+    rows = np.einsum("uld,nd->nul", R, t) - np.einsum("nd,nd->n", p, t)[:, None, None]
+    g = rows[st[:, None], line[:, None], l[:, None] + np.arange(4)[None, :]]  # (P, 4)
+    c = g @ KEYS_POWER  # the cubic's coefficients in tau
+    t_lo, t_hi = m2 * alpha - l, m2 * beta - l
+    # Turning points: roots of c1 + 2 c2 tau + 3 c3 tau^2 inside (t_lo, t_hi).
+    qa, qb, qc = 3.0 * c[:, 3], 2.0 * c[:, 2], c[:, 1]
+    disc = qb * qb - 4.0 * qa * qc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = -0.5 * (qb + np.copysign(np.sqrt(np.maximum(disc, 0.0)), qb))
+        turns = np.stack([q / qa, qc / q], axis=1)
+    turns[~(disc >= 0.0)] = np.nan
+    inside = np.isfinite(turns) & (turns > t_lo[:, None]) & (turns < t_hi[:, None])
+    nodes = np.sort(np.column_stack([t_lo, np.where(inside, turns, t_lo[:, None]), t_hi]),
+                    axis=1)
+    val = ((c[:, 3, None] * nodes + c[:, 2, None]) * nodes + c[:, 1, None]) * nodes + c[:, :1]
+    val = np.where(nodes == 0.0, g[:, 1:2], np.where(nodes == 1.0, g[:, 2:3], val))
+    val[np.abs(val) <= surf.zero] = 0.0
+    side = bands.side[st][:, None]
+    sgn = np.where(side * val > 0.0, side, -side)
+    # The ring lo itself is on its side: a line that meets the plane there (within the zero
+    # distance: an end ring in the plane, a plane touching the ring) crosses it at lo, or not.
+    at_lo = (nodes == t_lo[:, None]) & (alpha == bands.lo[st])[:, None]
+    sgn = np.where(at_lo, side, sgn)
+    pi, k = np.nonzero(sgn[:, :-1] != sgn[:, 1:])
+    lo, hi = nodes[pi, k], nodes[pi, k + 1]
+    flo, fhi = val[pi, k], val[pi, k + 1]
+    cc = c[pi]
+    eps = np.where(sgn[pi, k] == side[pi, 0], 1.0, -1.0)
+    den = np.where(fhi == flo, 1.0, fhi - flo)
+    x = np.where(flo == 0.0, lo, np.where(fhi == 0.0, hi, lo - flo * (hi - lo) / den))
+    fixed = (flo == 0.0) | (fhi == 0.0)
+    for _ in range(CROSSING_ITERATIONS):
+        fx = ((cc[:, 3] * x + cc[:, 2]) * x + cc[:, 1]) * x + cc[:, 0]
+        slope = (3.0 * cc[:, 3] * x + 2.0 * cc[:, 2]) * x + cc[:, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            newton = x - fx / slope
+        active = ~fixed & (fx != 0.0) & (hi - lo > 4e-16) & ~(np.abs(newton - x) < 1e-15)
+        if not active.any():
+            break
+        same = np.sign(fx) == np.sign(flo)
+        lo, flo = np.where(active & same, x, lo), np.where(active & same, fx, flo)
+        hi = np.where(active & ~same, x, hi)
+        ok = np.isfinite(newton) & (newton > lo) & (newton < hi)
+        x = np.where(active, np.where(ok, newton, 0.5 * (lo + hi)), x)
+    return pairs, (pi, (l[pi] + x) / m2, eps)
+
+
+def _form_integrals(m2: int, R: NDArray, Ru: NDArray, line: NDArray, l: NDArray, x0: NDArray,
+                    x1: NDArray, p: NDArray, t: NDArray, e1: NDArray, e2: NDArray) -> NDArray:
+    """The integrals ``(N, 3)`` over ``x0 <= v <= x1`` (inside the knot interval ``l``) along the
+    lines ``line`` of the 2-forms ``J, a J, b J`` (``J = (sigma_u x sigma_v) . t``, ``a, b`` the
+    plane coordinates of ``sigma - p``): over a part of the surface they integrate to the area
+    and first moments of its projection on the plane. Gauss-Legendre, :data:`BAND_ORDER` nodes
+    (exact: polynomials of degree <= 8 in ``v``)."""
+    gx, gw = np.polynomial.legendre.leggauss(BAND_ORDER)
+    half = 0.5 * (x1 - x0)
+    tau = m2 * (x0[:, None] + half[:, None] * (gx[None, :] + 1.0)) - l[:, None]  # (N, q)
+    one = np.ones_like(tau)
+    w = np.stack([one, tau, tau * tau, tau * tau * tau], axis=-1) @ KEYS_POWER.T  # (N, q, 4)
+    dw = m2 * (np.stack([0 * one, one, 2 * tau, 3 * tau * tau], axis=-1) @ KEYS_POWER.T)
+    cols = l[:, None] + np.arange(4)[None, :]
+    rows, rows_u = R[line[:, None], cols], Ru[line[:, None], cols]  # (N, 4, 3)
+    s = np.einsum("nqj,njd->nqd", w, rows)
+    jac = np.einsum("nqd,nd->nq", np.cross(np.einsum("nqj,njd->nqd", w, rows_u),
+                                           np.einsum("nqj,njd->nqd", dw, rows)), t)
+    rel = s - p[:, None, :]
+    forms = np.stack([jac, np.einsum("nqd,nd->nq", rel, e1) * jac,
+                      np.einsum("nqd,nd->nq", rel, e2) * jac], axis=-1)
+    return half[:, None] * np.einsum("nqk,q->nk", forms, gw)
+
+
+def _band_moments(surf: _Surface, R: NDArray, Ru: NDArray, w: NDArray, p: NDArray, t: NDArray,
+                  bands: _Bands) -> tuple[NDArray, NDArray]:
+    """The signed area and first moments ``(n, 3)`` of full sections on the lines with columns
+    ``R, Ru`` and weights ``w`` around (see the module's notes), and whether some line crosses
+    the section more than once.
+
+    On the surface ``d(1/2 (a db - b da)) = da ^ db = J du dv``: by Stokes' theorem the Green
+    integrals along the cut, oriented as the boundary of the part ``S`` of the stretch on the
+    ring ``lo``'s side of the plane, are the integrals of ``J, a J, b J`` over ``S`` less the
+    Green integrals along the ring ``lo``. Along each line the integral over ``S`` is ``sum_k
+    eps_k F(v_k)`` over its crossings, ``F(v)`` the integral from ``lo`` to ``v``
+    (Gauss-Legendre, :data:`BAND_ORDER` nodes per knot interval: exact, the forms are
+    polynomials of degree <= 8 in ``v`` there). It changes continuously with the plane, also
+    where crossings appear or merge in pairs (where the Green integrand along the cut itself is
+    singular)."""
+    m2, n, nu = surf.model.m2, len(p), len(R)
+    e1, e2 = orthonormal_pair(t)
+    moments = np.zeros((n, 3))
+    many = np.zeros(n, dtype=bool)
+    span = np.ceil(m2 * bands.hi) - np.floor(m2 * bands.lo) + 1  # knot intervals, at most
+    block = max(1, int(200_000 // (nu * BAND_ORDER * max(float(span.max(initial=1)), 1.0))))
+    for a in range(0, n, block):
+        b = min(n, a + block)
+        (st, line, l, alpha, beta), (pi, vr, eps) = _band_roots(surf, R, p[a:b], t[a:b],
+                                                                 bands.take(slice(a, b)))
+        sg = a + st
+
+        def integral(x0: NDArray, x1: NDArray, pair: NDArray) -> NDArray:
+            k = sg[pair]
+            return _form_integrals(m2, R, Ru, line[pair], l[pair], x0, x1, p[k], t[k], e1[k],
+                                   e2[k])
+
+        whole = integral(alpha, beta, np.arange(len(st)))  # each pair's part of the stretch
+        # F at the start of each pair: its line's earlier pairs (in order along v).
+        first = np.concatenate([[True], (st[1:] != st[:-1]) | (line[1:] != line[:-1])])
+        start = np.maximum.accumulate(np.where(first, np.arange(len(st)), 0))
+        pos = np.arange(len(st)) - start
+        before = np.zeros_like(whole)
+        for j in range(int(pos.max(initial=0))):
+            later = pos > j
+            before[later] += whole[start[later] + j]
+        f_at = before[pi] + integral(alpha[pi], vr, pi)
+        np.add.at(moments, sg[pi], (w[line[pi]] * eps)[:, None] * f_at)
+        per_line = np.add.reduceat(np.bincount(pi, minlength=len(st)), np.flatnonzero(first))
+        many[sg[first][per_line > 1]] = True
+    # Less the Green integrals along the ring lo.
+    k = np.repeat(np.arange(n), nu)
+    line = np.tile(np.arange(nu), n)
+    vlo = bands.lo[k]
+    s, su, _ = _line_points(m2, R, Ru, line, np.clip(np.floor(m2 * vlo).astype(int), 0, m2 - 1),
+                            vlo)
+    ring = _green((s - p[k]).reshape(n, nu, 3), su.reshape(n, nu, 3), np.broadcast_to(w, (n, nu)),
+                  e1, e2)
+    return moments - np.stack(ring, axis=1), many
+
+
+def _band_points(surf: _Surface, u: NDArray, p: NDArray, t: NDArray, bands: _Bands
+                 ) -> tuple[NDArray, NDArray, NDArray]:
+    """The full sections' points on the lines ``u``: ``(station, line, point)`` of every
+    crossing, in order of station, line and ``v``."""
+    m2 = surf.model.m2
+    R, _ = surf.columns(u)
+    span = np.ceil(m2 * bands.hi) - np.floor(m2 * bands.lo) + 1  # knot intervals, at most
+    block = max(1, int(500_000 // (len(u) * max(float(span.max(initial=1)), 1.0))))
+    out = []
+    for a in range(0, len(p), block):
+        b = min(len(p), a + block)
+        (st, line, l, _, _), (pi, vr, _) = _band_roots(surf, R, p[a:b], t[a:b],
+                                                       bands.take(slice(a, b)))
+        out.append((a + st[pi], line[pi], _line_points(m2, R, None, line[pi], l[pi], vr)[0]))
+    return (np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out]),
+            np.concatenate([o[2] for o in out]))
+
+
+# --------------------------------------------------------------------------------------------
+# The sections
+# --------------------------------------------------------------------------------------------
 
 
 @dataclass
@@ -483,11 +798,12 @@ class _Sections:
     max_diameter: NDArray
 
 
-def _measure(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, uu: NDArray, ww: NDArray,
-             cap: tuple[NDArray, NDArray, NDArray] | None) -> tuple[NDArray, NDArray, NDArray]:
-    """Green's integrals ``(A, M_a, M_b)`` of the cuts along ``uu`` (weights ``ww``), closed by
-    the cap's chord when ``cap = (end, u_a, u_b)``; whether each cut is whole (every ``u``
-    crosses, no jump) and whether its plane cuts the tube elsewhere too."""
+def _measure_capped(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, uu: NDArray,
+                    ww: NDArray, cap: tuple[NDArray, NDArray, NDArray]
+                    ) -> tuple[NDArray, NDArray, NDArray]:
+    """Green's integrals ``(A, M_a, M_b)`` of the arcs of the cuts along ``uu`` (weights
+    ``ww``) closed by the cap's chord, ``cap = (end, u_a, u_b)``; whether each arc is whole
+    (every ``u`` crosses, no jump) and whether its plane cuts the tube elsewhere too."""
     e1, e2 = orthonormal_pair(t)
     v, s, s_u, s_v, many = _cut(surf, uu, p, t, v0)
     tt = t[:, None, :]
@@ -495,40 +811,46 @@ def _measure(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, uu: NDArray, w
         dv = -np.sum(s_u * tt, axis=-1) / np.sum(s_v * tt, axis=-1)
     dq = s_u + s_v * dv[..., None]
     moments = np.stack(_green(s - p[:, None, :], dq, ww, e1, e2), axis=1)
-    if cap is not None:  # closed by the cap's chord from the arc's end back to its start
-        end, ua, ub = cap
-        plane = [np.stack([np.einsum("nd,nd->n", q - p, e1), np.einsum("nd,nd->n", q - p, e2)],
-                          axis=1) for q in (surf.model(np.mod(ub, 1.0), end),
-                                            surf.model(np.mod(ua, 1.0), end))]
-        moments += np.stack(_chord(*plane), axis=1)
+    end, ua, ub = cap  # closed by the cap's chord from the arc's end back to its start
+    plane = [np.stack([np.einsum("nd,nd->n", q - p, e1), np.einsum("nd,nd->n", q - p, e2)],
+                      axis=1) for q in (surf.model(np.mod(ub, 1.0), end),
+                                        surf.model(np.mod(ua, 1.0), end))]
+    moments += np.stack(_chord(*plane), axis=1)
     whole = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(dv), axis=1)
-    whole &= ~_broken(s, dq, uu, closed=cap is None, tol=surf.zero)
+    whole &= ~_broken(s, dq, uu, tol=surf.zero)
     return moments, whole & np.all(np.isfinite(moments), axis=1), many
 
 
 def _sections(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, calipers: bool,
               order: int = AREA_ORDER) -> _Sections:
     """The sections by the planes through ``p`` normal to ``t`` (see the module's notes): the
-    whole cut around if every ``u`` crosses the plane without a jump; else the first cap
-    candidate (:func:`_cap_candidates`) whose arc does (the end ring nearest first); else
-    dropped."""
+    cut of the station's full stretch (:func:`_bands`) if it has one; else, if its stretch is
+    open at an end, the first cap candidate (:func:`_cap_candidates`) of that end whose arc
+    crosses the plane at every ``u`` without a jump; else dropped."""
     model = surf.model
     n = len(p)
     status = np.full(n, _DROPPED)
     end, ua, ub = np.zeros(n), np.zeros(n), np.zeros(n)
     u, w = gauss_legendre_grid(model.m1, order)
-    moments, whole, crossed = _measure(surf, p, t, v0, np.broadcast_to(u, (n, len(u))),
-                                       np.broadcast_to(w, (n, len(u))), None)
-    status[whole] = _FULL
-    st, ve, ca, cb = _cap_candidates(surf, p, t, np.flatnonzero(~whole))
+    R, Ru = surf.columns(u)
+    bands = _bands(surf, R, p, t, v0)
+    moments = np.full((n, 3), np.nan)
+    crossed = bands.crossed.copy()
+    full = np.flatnonzero(bands.full)
+    if len(full):
+        moments[full], many = _band_moments(surf, R, Ru, w, p[full], t[full], bands.take(full))
+        crossed[full] |= many
+        status[full] = _FULL
+    st, ve, ca, cb = _cap_candidates(surf, p, t, np.flatnonzero(bands.ends.any(axis=1)))
+    keep = bands.ends[st, ve.astype(int)]  # only the end the station's stretch is open at
+    st, ve, ca, cb = st[keep], ve[keep], ca[keep], cb[keep]
     if len(st):
         # The arc's own ends (weight 0) too, so that a jump next to the cap is seen.
         nodes, weights = _arc_nodes(model.m1, ca, cb, order)
         uu = np.column_stack([ca, nodes, cb])
         ww = np.column_stack([np.zeros(len(st)), weights, np.zeros(len(st))])
-        m_cap, ok, many = _measure(surf, p[st], t[st], v0[st], uu, ww, (ve, ca, cb))
-        order = np.lexsort((np.abs(ve - v0[st]), st))  # per station, the nearer end first
-        for c in order:
+        m_cap, ok, many = _measure_capped(surf, p[st], t[st], v0[st], uu, ww, (ve, ca, cb))
+        for c in np.lexsort((np.abs(ve - v0[st]), st)):  # per station, the nearer end first
             i = st[c]
             if ok[c] and status[i] == _DROPPED:
                 status[i], end[i], ua[i], ub[i] = _CAPPED, ve[c], ca[c], cb[c]
@@ -543,41 +865,71 @@ def _sections(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, calipers: boo
                     + (moments[ok, 2] / a_signed[ok])[:, None] * e2[ok])
     dmin, dmax = np.full(n, np.nan), np.full(n, np.nan)
     if calipers:
-        _section_calipers(surf, p, t, v0, status, end, ua, ub, e1, e2, dmin, dmax)
+        _section_calipers(surf, p, t, v0, bands, status, end, ua, ub, e1, e2, dmin, dmax)
     return _Sections(status, area, centroid, crossed & ok, dmin, dmax)
 
 
-def _section_calipers(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, status: NDArray,
-                      end: NDArray, ua: NDArray, ub: NDArray, e1: NDArray, e2: NDArray,
-                      dmin: NDArray, dmax: NDArray) -> None:
-    """Caliper widths of the sections (in place): a complete section's curve at
-    :data:`CALIPER_SAMPLES` points per knot interval around; a capped one's lateral arc at as
-    many points, then its chord."""
+def _plane_calipers(rel: NDArray, e1: NDArray, e2: NDArray, smooth: bool
+                    ) -> tuple[NDArray, NDArray]:
+    """:func:`_calipers` of curves ``rel (n, m, 3)`` (points less the plane's origin) in their
+    planes' ``e1, e2``, 64 curves at a time."""
+    dmin, dmax = np.empty(len(rel)), np.empty(len(rel))
+    for j in range(0, len(rel), 64):
+        sl = slice(j, j + 64)
+        plane = np.stack([np.einsum("nmd,nd->nm", rel[sl], e[sl]) for e in (e1, e2)], -1)
+        dmin[sl], dmax[sl] = _calipers(plane, smooth=smooth)
+    return dmin, dmax
+
+
+def _section_calipers(surf: _Surface, p: NDArray, t: NDArray, v0: NDArray, bands: _Bands,
+                      status: NDArray, end: NDArray, ua: NDArray, ub: NDArray, e1: NDArray,
+                      e2: NDArray, dmin: NDArray, dmax: NDArray) -> None:
+    """Caliper widths of the sections (in place): a full section's cut on
+    :data:`CALIPER_SAMPLES` lines ``u = const`` per knot interval around (every crossing in its
+    stretch: a curve in ``u`` where each line crosses once, else a point set, as a capped
+    section's corners, its extremes the samples'); a capped one's lateral arc at as many points,
+    then its chord."""
     model = surf.model
     k = CALIPER_SAMPLES * model.m1
-    for kind in (_FULL, _CAPPED):
-        idx = np.flatnonzero(status == kind)
-        if not len(idx):
-            continue
-        if kind == _FULL:
-            uu = np.broadcast_to(np.arange(k) / k, (len(idx), k))
-        else:
-            uu = ua[idx, None] + (ub - ua)[idx, None] * np.linspace(0.0, 1.0, k)[None, :]
-        v, s, _, _, _ = _cut(surf, uu, p[idx], t[idx], v0[idx])
-        curve = s
-        if kind == _CAPPED:  # the chord back from the arc's end to its start
-            frac = np.linspace(0.0, 1.0, CALIPER_SAMPLES + 1)[1:-1, None]
-            qa, qb = s[:, 0], s[:, -1]
-            chord = qb[:, None, :] + frac[None] * (qa - qb)[:, None, :]
-            curve = np.concatenate([s, chord], axis=1)
-        bad = ~np.all(np.isfinite(v), axis=1)
-        status[idx[bad]] = _DROPPED
-        good = idx[~bad]
-        rel = curve[~bad] - p[good][:, None, :]
-        for j in range(0, len(good), 64):  # in blocks: the support values of 64 curves at once
-            g = good[j:j + 64]
-            plane = np.stack([np.einsum("nmd,nd->nm", rel[j:j + 64], e[g]) for e in (e1, e2)], -1)
-            dmin[g], dmax[g] = _calipers(plane, smooth=kind == _FULL)
+    idx = np.flatnonzero(status == _FULL)
+    if len(idx):
+        sta, lin, pts = _band_points(surf, np.arange(k) / k, p[idx], t[idx], bands.take(idx))
+        pts = pts - p[idx][sta]
+        counts = np.bincount(sta * k + lin, minlength=len(idx) * k).reshape(len(idx), k)
+        simple = (counts == 1).all(axis=1)
+        if simple.any():  # a curve in u: the points in order of station and line
+            g = idx[simple]
+            one = simple[sta]
+            dmin[g], dmax[g] = _plane_calipers(pts[one].reshape(-1, k, 3), e1[g], e2[g], True)
+        rest = np.flatnonzero(~simple & (counts.sum(axis=1) > 0))
+        if len(rest):  # every crossing, padded with each section's first one
+            size = counts[rest].sum(axis=1)
+            first = np.searchsorted(sta, rest)
+            pad = np.repeat(pts[first][:, None, :], size.max(), axis=1)
+            for r in range(len(rest)):
+                pad[r, :size[r]] = pts[first[r]:first[r] + size[r]]
+            g = idx[rest]
+            dmin[g], dmax[g] = _plane_calipers(pad, e1[g], e2[g], False)
+    idx = np.flatnonzero(status == _CAPPED)
+    if not len(idx):
+        return
+    uu = ua[idx, None] + (ub - ua)[idx, None] * np.linspace(0.0, 1.0, k)[None, :]
+    v, s, _, _, _ = _cut(surf, uu, p[idx], t[idx], v0[idx])
+    frac = np.linspace(0.0, 1.0, CALIPER_SAMPLES + 1)[1:-1, None]
+    qa, qb = s[:, 0], s[:, -1]  # the chord back from the arc's end to its start
+    chord = qb[:, None, :] + frac[None] * (qa - qb)[:, None, :]
+    rel = np.concatenate([s, chord], axis=1) - p[idx][:, None, :]
+    # Whole, and around its station: a plane that also cuts the tube near an end (the other leg
+    # of a bend) crosses that end ring too, but the cut closed there is not the section.
+    with np.errstate(invalid="ignore"):
+        turn = np.angle(np.einsum("nmd,nd->nm", rel, e1[idx])
+                        + 1j * np.einsum("nmd,nd->nm", rel, e2[idx]))
+        winding = np.sum(np.angle(np.exp(1j * np.diff(turn, axis=1, append=turn[:, :1]))),
+                         axis=1) / (2.0 * np.pi)
+    bad = ~np.all(np.isfinite(v), axis=1) | ~(np.abs(winding) > 0.5)
+    status[idx[bad]] = _DROPPED
+    good = idx[~bad]
+    dmin[good], dmax[good] = _plane_calipers(rel[~bad], e1[good], e2[good], False)
 
 
 # --------------------------------------------------------------------------------------------
@@ -609,28 +961,39 @@ def _to_cap(point: NDArray, direction: NDArray, cap: tuple[NDArray, NDArray]) ->
 
 
 class _Curve:
-    """A centerline by arc length: straight from the head to the first point along the first
-    tangent, the cubic spline (chord length, not-a-knot) through ``points``, straight on to the
-    tail along the last tangent."""
+    """A centerline by arc length: straight from the head to the curve's start along its
+    tangent there, a cubic spline through ``points`` (chord length, not-a-knot), or fitted to
+    them by least squares at parameters ``x`` with ``intervals`` knot intervals (knots at the
+    parameters' quantiles), straight on to the tail along its end tangent."""
 
-    def __init__(self, points: NDArray, v: NDArray,
-                 caps: list[tuple[NDArray, NDArray]] | None) -> None:
-        keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-12])
-        points, v = points[keep], v[keep]
-        self.knots = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0),
-                                                                     axis=1))])
-        self.spline = CubicSpline(self.knots, points, bc_type="not-a-knot"
-                                  if len(points) > 3 else "natural")
+    def __init__(self, points: NDArray, v: NDArray, caps: list[tuple[NDArray, NDArray]] | None,
+                 x: NDArray | None = None, intervals: int | None = None) -> None:
+        if x is None:
+            keep = np.concatenate([[True],
+                                   np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-12])
+            points, v = points[keep], v[keep]
+            x = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0),
+                                                                 axis=1))])
+        x = np.asarray(x, dtype=np.float64)
+        breaks = x
+        if intervals is not None and len(x) >= intervals + 3 + STATIONS_PER_INTERVAL:
+            inner = np.quantile(x, np.arange(1, intervals) / intervals)
+            self.spline = make_lsq_spline(x, points, np.r_[[x[0]] * 4, inner, [x[-1]] * 4], k=3)
+            breaks = np.union1d(x, inner)
+        else:
+            self.spline = CubicSpline(x, points, bc_type="not-a-knot"
+                                      if len(points) > 3 else "natural")
+        self.knots = breaks
         self.table = _arc_table(self._speed, self.knots)
-        self.t0 = _unit(self.spline(self.knots[0], 1))
-        self.t1 = _unit(self.spline(self.knots[-1], 1))
-        self.p0, self.p1 = points[0], points[-1]
+        self.t0 = _unit(self.spline(x[0], 1))
+        self.t1 = _unit(self.spline(x[-1], 1))
+        self.p0, self.p1 = self.spline(x[0]), self.spline(x[-1])
         self.head = _to_cap(self.p0, -self.t0, caps[0]) if caps else 0.0
         self.tail = _to_cap(self.p1, self.t1, caps[1]) if caps else 0.0
         self.inner = float(self.table[-1])
         self.length = self.head + self.inner + self.tail
-        self.arc_v = (np.concatenate([[0.0], self.head + self.table, [self.length]]),
-                      np.concatenate([[0.0], v, [1.0]]))
+        self.arc_v = (np.concatenate([[0.0], self.head + self.table[np.searchsorted(breaks, x)],
+                                      [self.length]]), np.concatenate([[0.0], v, [1.0]]))
         if self.head == 0.0:
             self.arc_v = (self.arc_v[0][1:], self.arc_v[1][1:])
         if self.tail == 0.0:
@@ -677,6 +1040,7 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
     t = _unit(dp)
     caps = _cap_planes(model)
     best, best_shift = rings, np.inf
+    s = _samples(length, step)
     for _ in range(CENTERLINE_ITERATIONS):
         sec = _sections(surf, p, t, v, calipers=False, order=CENTERLINE_ORDER)
         moved = np.linalg.norm(sec.centroid - p, axis=1)
@@ -686,14 +1050,18 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
         use = (sec.status == _FULL) & (moved < 0.5 * np.sqrt(sec.area / np.pi))
         if use.sum() < MIN_FULL_STATIONS:
             break
-        shift = float(np.max(moved[use]))
+        span = s[use][-1] - s[use][0]
+        intervals = max(1, int(np.ceil(model.m2 * span / s[-1] - 1e-9)))
+        curve = _Curve(sec.centroid[use], v[use], caps, x=s[use], intervals=intervals)
+        # How far the curve moved at the stations.
+        shift = float(np.max(np.linalg.norm(curve.spline(s[use]) - p[use], axis=1)))
         if shift >= best_shift and best is not rings:
             break  # not converging: keep the best curve so far
-        best, best_shift = _Curve(sec.centroid[use], v[use], caps), shift
+        best, best_shift = curve, shift
         if shift <= CENTERLINE_TOL_MM:
             break
-        p, t, v = best.at(_samples(best.length, min(step, best.length / (
-            STATIONS_PER_INTERVAL * model.m2))))
+        s = _samples(best.length, min(step, best.length / (STATIONS_PER_INTERVAL * model.m2)))
+        p, t, v = best.at(s)
     return best
 
 
