@@ -109,7 +109,9 @@ class RegionParams:
     #: Relative energy change per iteration at which the stages before the last stop: each
     #: only places the surface for the next one's reading of the outside (measured on a lobed
     #: blob: the first stage crept by 4e-5 per iteration for 200 iterations into the lobes,
-    #: which the next rounds reach anyway); the last stage uses the ``tol`` option.
+    #: which the next rounds reach anyway); the last stage uses the ``tol`` option. The finer
+    #: grids run to it too; the one kept last is then taken on to ``tol``
+    #: (:func:`segsnake.region_stages.polish`).
     interim_tol: float = 1e-4
     #: Price of the volume the surface wraps other than once, per mm^3, in units of the
     #: density's scale (the two-class density lies in [-1, 1]; :class:`CrossingPenalty`). A

@@ -26,7 +26,7 @@ from segsnake.stage import (FOV_DENSITY, FOV_PAD, MAX_ORDER, REGULARIZATION, Run
                             longest_intervals, quadrature_order)
 from segsnake.surfaces import CylinderModel, SplineSurface, axial_rings, model_from_dict
 
-__all__ = ["segment_region", "finer_grids", "tube_rings", "tube_ends"]
+__all__ = ["segment_region", "finer_grids", "polish", "tube_rings", "tube_ends"]
 
 
 def segment_region(image, sp, config, model, progress, extra_energy, init_s,
@@ -60,7 +60,8 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     markups file, another size, image or options) the intensity model is read from the snake's
     core and the two-class rounds run from it.
 
-    The last stage (the last round, or the finer grid kept) ends stationary
+    The last stage (the last round, or the finer grid kept, run to the interim tolerance and
+    then on with the same functional: :func:`polish`) ends stationary
     (:func:`segsnake.optimize.stationarity`), and its record is returned in ``settings``.
     """
     from segsnake import region as rg
@@ -150,9 +151,16 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
 
     def beyond(surface, win, max_mm):
         # The voxels inside the surface on the window's grid, and the distance (mm) of those
-        # outside it up to max_mm (inf farther).
-        inside = rasterize(win.model_in(surface), win.shape, sp)
-        return inside, distance_within(inside, sp, max_mm)
+        # outside it up to max_mm (inf farther): both found in the box max_mm (and two voxels)
+        # around the surface, beyond which nothing is inside and nothing that near (the window
+        # is wider: the passes' windows follow their union, the rounds' the surface's moves).
+        box = win.within(Window.around(surface, image.shape, sp, max_mm + 2 * max(sp)))
+        inside = np.zeros(win.shape, dtype=bool)
+        distance = np.full(win.shape, np.inf, dtype=np.float32)
+        part = box.slices_in(win)
+        inside[part] = rasterize(box.model_in(surface), box.shape, sp)
+        distance[part] = distance_within(inside[part], sp, max_mm)
+        return inside, distance
 
     def grow(model):
         # The region stage in passes, each within growth_mm beyond its starting surface (a
@@ -248,20 +256,21 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         resume = None
         if restart is not None:
             resume = (model_from_dict(restart["reference"]), tuple(restart["order"]))
+        # (the last round runs to the final tolerance in windows that follow it, stationary)
         model = stage(model, density, f"two classes, round {k + 1}",
                       None if k == last else p.interim_tol, stationary=k == last, resume=resume)
         del density, shell
-        if k == last:
-            # The result's energy: its record (lookup from these, reference, order).
-            final, round_start, final_window = run.last, start, window
-        else:
+        if k < last:
             branching(model)
+            continue
+        round_start, final_window = start, window
         # (a tube's rings along follow its calibre: its finer grids are finer around only; a
         # restart's record names the result's last stage, after which its schedule had ended)
-        if k == last and restart is None and config.coarse_to_fine and config.m1 is None \
+        if restart is None and config.coarse_to_fine and config.m1 is None \
                 and (config.m2 is None or model.kind == "cylinder"):
-            finer, kept = finer_grids(run, window.model_in(model), p)
-            model, final = window.model_out(finer), kept or final
+            model = window.model_out(finer_grids(run, window.model_in(model), p))
+        # The result's energy: its record (lookup from these, reference, order).
+        final = run.last
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
     mask = win.embed(inside)
     del inside, shell
@@ -296,7 +305,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
 
 
-def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | None]:
+def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``: M1 = M2 for a
     sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started from the
     current surface: a sphere's first finer grid fitted with its poles on
@@ -308,16 +317,21 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
     through itself moves the whole volume). The first grid refused ends the schedule, as does
     a finer stage that fails (a collapse), and a kept grid whose image energy gain (recorded)
     is below ``p.finer_gain``: the next is not tried (docs/design.md, "Coarse to
-    fine"). Returns the surface and the ``run.last`` of the finer stage kept (None if none)."""
+    fine").
+
+    ``model`` is the last round's stationary result on ``run.lookup``. Each grid runs to the
+    interim tolerance (``p.interim_tol``): the gain and the volume test compare surfaces that
+    are placed, not polished, and only the grid kept last is the result, which :func:`polish`
+    takes on to the final tolerance. Returns that surface; ``run.last`` is its stage's."""
     from segsnake.resample import poles_on_long_axis, resample
 
-    lookup, kept = run.lookup, None
+    lookup = run.lookup
 
     def image_energy(m: SplineSurface, order: int) -> float:
         flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
         return flux.value_and_grad(m.params)[0]
 
-    tube = model.kind == "cylinder"
+    tube, kept = model.kind == "cylinder", False
     for m in p.finer_m:
         if m <= (model.m1 if tube else min(model.m1, model.m2)):
             continue
@@ -325,9 +339,9 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
         last, name = run.last, f"grid {m}x{m2}"
         # (a sphere's first finer grid: its poles move to the ends of the surface's long axis)
         start = poles_on_long_axis(model, m, m2) \
-            if not tube and kept is None and p.long_axis_poles else resample(model, m, m2)
+            if not tube and not kept and p.long_axis_poles else resample(model, m, m2)
         try:
-            finer = run.region(start, lookup, name, stationary=True)
+            finer = run.region(start, lookup, name, p.interim_tol)
         except SegmentationError as exc:
             # (a finer surface that collapsed through itself is no refinement either)
             run.history.append({"stage": name, "kept": False, "error": str(exc)})
@@ -344,10 +358,25 @@ def finer_grids(run, model: SplineSurface, p) -> tuple[SplineSurface, dict | Non
         if not keep:
             run.last = last  # (the result's energy stays the coarser stage's)
             break
-        model, kept = finer, run.last
+        model, kept = finer, True
         if gain < p.finer_gain:
             break
-    return model, kept
+    return polish(run, model) if kept else model
+
+
+def polish(run, model: SplineSurface) -> SplineSurface:
+    """The result's stage: ``model``, where the last stage (``run.last``, on ``run.lookup``)
+    stopped at the interim tolerance, on from there with the same functional (its reference
+    surface and quadrature order) to the ``tol`` option and stationarity
+    (:func:`segsnake.optimize.stationarity`), its iterations counted against the stage's cap
+    (the ``max_iter`` option: one stage, run in two tolerances). A restart from the result's
+    record minimizes the same functional and comes back unchanged."""
+    last = run.last
+    if last["iterations"] >= run.config.max_iter:
+        return model  # (the stage ended at its cap: there is nothing left to run)
+    return run.region(model, run.lookup, f"polish: {last['stage']}", stationary=True,
+                      resume=(last["reference"], tuple(last["order"])), at_rest=False,
+                      used=last["iterations"])
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:

@@ -68,18 +68,19 @@ class Run:
         self.last: dict[str, Any] | None = None  # the last stage's energy and functional
 
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
-               weight=-1.0, region=False, stationary=False, resume=None, leaves=None, used=0):
+               weight=-1.0, region=False, stationary=False, resume=None, leaves=None, used=0,
+               at_rest=True):
         model, res = run_stage(model, lookup, weight, self.config, self.bounds, self.extra, band,
                                 feature_mm, tol, node_spacing, region, stationary, resume,
                                 leaves, used,
-                                self.region_params.crossing_weight if region else 0.0)
+                                self.region_params.crossing_weight if region else 0.0, at_rest)
         self.timings["optimize_s"] += res["time_s"]
         self.iterations += res["iterations"]
         # What defines the energy this stage ended in (its lookup is self.lookup), for the
         # restart record of the stage that gives the result.
         reference, order = res.pop("functional")
         self.last = {"stage": name, "energy": res["energy"], "reference": reference,
-                     "order": [int(o) for o in order]}
+                     "order": [int(o) for o in order], "iterations": used + res["iterations"]}
         self.history.append({"stage": name, **res})
         return model
 
@@ -96,15 +97,17 @@ class Run:
                         FOV_PAD * np.asarray(self.sp))
 
     def region(self, model, lookup: "_Shifted", name: str, tol: float | None = None,
-               stationary: bool = False, resume=None, leaves=None, used: int = 0):
+               stationary: bool = False, resume=None, leaves=None, used: int = 0,
+               at_rest: bool = True):
         """Minimize the volume integral of a density (:mod:`segsnake.region`) given by its
         :meth:`region_lookup` (the model in the window's coordinates); ``self.lookup`` keeps
-        the lookup. ``stationary``, ``resume``, ``leaves``, ``used``: see :func:`run_stage`."""
+        the lookup. ``stationary``, ``resume``, ``leaves``, ``used``, ``at_rest``: see
+        :func:`run_stage`."""
         self.lookup = lookup
         p = self.region_params
         return self._stage(name, model, lookup, p.step_mm, p.edge_smooth_mm, tol, weight=1.0,
                            region=True, stationary=stationary, resume=resume, leaves=leaves,
-                           used=used)
+                           used=used, at_rest=at_rest)
 
     def field_lookup(self, field: NDArray, divergence_of_gradient: bool) -> "_Shifted":
         """An edge stage's lookup (:meth:`segsnake.lookup.Lookup.from_field`): its density is
@@ -154,7 +157,7 @@ def quadrature_order(interval_mm: float, feature_mm: float, spacing: float | Non
 
 def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature_mm, tol=None,
                node_spacing=None, region=False, stationary=False, resume=None, leaves=None,
-               used=0, crossing_weight=0.0):
+               used=0, crossing_weight=0.0, at_rest=True):
     """Minimize one stage's energy, re-choosing the quadrature until it is trustworthy.
 
     A stage runs in rounds (at most 8). Each round picks the quadrature order for intervals up to
@@ -186,6 +189,10 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
     :data:`segsnake.optimize.POLISH_ITER` iterations past that rule and within the stage's
     iteration cap; the rounds before it run as without). The polish, like a resumed round,
     checks stationarity before its first step: a restart from the result takes none.
+    ``at_rest=False`` (with ``resume``): the surface is where the same energy stopped at a looser
+    tolerance, not at rest: the resumed round runs the relative-change rule at ``tol`` first
+    (the first-order test would pass it at once: a 1e-3 mm move gains little anywhere near a
+    minimum), then the polish.
     ``leaves(surface)``: the stage ends at the first accepted iterate for which it is True
     (``left`` in the record; no check, no polish): the caller goes on elsewhere. ``used``: the
     iterations the stage already took there (they count against ``config.max_iter``).
@@ -228,7 +235,8 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
                               tol=tol, bounds_mm=bounds, max_step_mm=band,
                               admissible=admissible,
                               callback=leaving(check.during),
-                              stationary_tol=tol if resumed and stationary else None)
+                              stationary_tol=tol if resumed and stationary and at_rest
+                              else None)
         model, final_energy = res.model, res.energy
         iterations += res.iterations
         evaluations += res.evaluations

