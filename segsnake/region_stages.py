@@ -320,9 +320,11 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     fine").
 
     ``model`` is the last round's stationary result on ``run.lookup``. Each grid runs to the
-    interim tolerance (``p.interim_tol``): the gain and the volume test compare surfaces that
-    are placed, not polished, and only the grid kept last is the result, which :func:`polish`
-    takes on to the final tolerance. Returns that surface; ``run.last`` is its stage's."""
+    interim tolerance (``p.interim_tol``): only the grid kept last is the result, which
+    :func:`polish` takes on to the final tolerance, and the volume test is then asked again of
+    the polished surface (a leak that had begun goes on while it is polished): refused, the grid
+    before is polished instead, down to the last round's surface. Returns the result; ``run.last``
+    is its stage's."""
     from segsnake.resample import poles_on_long_axis, resample
 
     lookup = run.lookup
@@ -331,7 +333,14 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
         flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
         return flux.value_and_grad(m.params)[0]
 
-    tube, kept = model.kind == "cylinder", False
+    def refines(finer: SplineSurface, coarser_volume: float) -> tuple[bool, float]:
+        change = (finer.volume(order=4) - coarser_volume) / max(coarser_volume, 1e-300)
+        return bool(abs(change) <= p.finer_volume), change
+
+    tube = model.kind == "cylinder"
+    # the grids kept: (surface, its stage's record, the volume of the surface it refines)
+    kept: list[tuple[SplineSurface, dict, float]] = []
+    base = model, run.last
     for m in p.finer_m:
         if m <= (model.m1 if tube else min(model.m1, model.m2)):
             continue
@@ -352,16 +361,26 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
         e, e_fine = image_energy(model, order), image_energy(finer, order)
         gain = (e - e_fine) / max(abs(e), 1e-300)
         volume = abs(model.volume(order=4))
-        change = (finer.volume(order=4) - volume) / max(volume, 1e-300)
-        keep = bool(abs(change) <= p.finer_volume)
+        keep, change = refines(finer, volume)
         run.history[-1].update(image_energy_gain=gain, volume_change=change, kept=keep)
         if not keep:
             run.last = last  # (the result's energy stays the coarser stage's)
             break
-        model, kept = finer, True
+        model = finer
+        kept.append((finer, run.last, volume))
         if gain < p.finer_gain:
             break
-    return polish(run, model) if kept else model
+    while kept:
+        finer, run.last, volume = kept.pop()
+        stages = len(run.history)
+        polished = polish(run, finer)
+        keep, change = refines(polished, volume)
+        if len(run.history) > stages:  # (a stage at its cap is not polished: kept as it was)
+            run.history[-1].update(volume_change=change, kept=keep)
+        if keep:
+            return polished
+    model, run.last = base
+    return model
 
 
 def polish(run, model: SplineSurface) -> SplineSurface:
