@@ -282,7 +282,7 @@ def test_a_small_ball_is_segmented_at_its_size(seed):
     config = SegmentConfig.from_mapping({**ph.init, "radii": [0.7 * r] * 3})
     res = segment_volume(ph.image, ph.spacing, config)
     assert res.model.volume() / (4 / 3 * np.pi * r ** 3) == pytest.approx(1.0, abs=0.05)
-    assert dice(res.mask, ph.truth.astype(bool)) > 0.91  # measured 0.918-0.946 (0.87-0.89)
+    assert dice(res.mask, ph.truth.astype(bool)) > 0.91  # measured 0.918-0.942 (0.87-0.89)
 
 
 def test_a_sphere_grows_from_its_click_in_passes_each_within_its_band():
