@@ -377,7 +377,7 @@ def _cut(surf: _Surface, u: NDArray, p: NDArray, t: NDArray, v0: NDArray
         flo, fhi = f[rows, j], f[rows, j + 1]
         den = np.where(fhi == flo, 1.0, fhi - flo)
         v = np.where(flo == 0.0, lo, np.where(fhi == 0.0, hi, lo - flo * (hi - lo) / den))
-        R, Ru, pr, tr, off = R[rows], Ru[rows], pp[rows], tt[rows], offset[rows]
+        R, Ru, tr, off = R[rows], Ru[rows], tt[rows], offset[rows]
         for _ in range(CROSSING_ITERATIONS):
             s, _, s_v = surf.at(R, Ru, v)
             fv = np.einsum("nd,nd->n", s, tr) - off
@@ -1034,13 +1034,13 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
     table = _arc_table(speed, knots)
     length = float(table[-1])
     step = min(spacing_mm, length / (STATIONS_PER_INTERVAL * model.m2))
-    v = _parameters_at(speed, knots, table, _samples(length, step))
+    s = _samples(length, step)  # the stations' arc lengths
+    v = _parameters_at(speed, knots, table, s)
     p, dp = ring_centroids(model, v)
     rings = _Curve(p, v, None)  # the fallback
     t = _unit(dp)
     caps = _cap_planes(model)
     best, best_shift = rings, np.inf
-    s = _samples(length, step)
     for _ in range(CENTERLINE_ITERATIONS):
         sec = _sections(surf, p, t, v, calipers=False, order=CENTERLINE_ORDER)
         moved = np.linalg.norm(sec.centroid - p, axis=1)
