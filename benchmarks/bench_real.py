@@ -187,6 +187,7 @@ def run_segsnake(image: str, init: dict | None, tmp: str, extra: list[str] | Non
             saved = json.load(fh)
         res["warnings"] = saved["summary"].get("warnings", [])
         res["notes"] = {k: saved["settings"].get(k) for k in ("edge_support", "separation")}
+        res["notes"]["quality"] = saved["summary"].get("quality")
         res["m"] = [saved["model"]["m1"], saved["model"]["m2"]]
     return res
 

@@ -104,11 +104,13 @@ def perturbed_gradients(eps: float, seed: int = 0) -> Iterator[None]:
 
 
 def run_case(case: dict) -> dict:
-    """Segment one phantom; its score (Dice or Jaccard), iterations, seconds, or the error."""
+    """Segment one phantom; its score (Dice or Jaccard), iterations, seconds and the warnings
+    ``segment`` would print about it (:func:`segsnake.runner.result_warnings`), or the error."""
     from segsnake.config import SegmentConfig
     from segsnake.metrics import dice, jaccard
     from segsnake.phantoms import make_phantom
     from segsnake.pipeline import segment_volume
+    from segsnake.runner import result_warnings
 
     opts = dict(case["options"])
     ph = make_phantom(case["kind"], seed=opts.pop("seed"), **opts)
@@ -122,7 +124,7 @@ def run_case(case: dict) -> dict:
     truth = ph.truth.astype(bool)
     score = (dice if case["score"] == "dice" else jaccard)(res.mask, truth)
     return {"score": float(score), "iterations": int(res.iterations),
-            "seconds": time.perf_counter() - t0}
+            "seconds": time.perf_counter() - t0, "warnings": result_warnings(res)}
 
 
 def markdown(info: dict) -> str:
@@ -149,7 +151,9 @@ def markdown(info: dict) -> str:
             cells += [str(ex.get("iterations", "-")), f"{ex['seconds']:.1f}"]
             lines.append("| " + " | ".join(cells) + " |")
         ok = sum(r["exact"]["score"] >= r["goal"] for r in rows)
-        summary = f"{suite}: {ok} of {len(rows)} reach their goal"
+        warned = [r for r in rows if r["exact"].get("warnings")]
+        summary = (f"{suite}: {ok} of {len(rows)} reach their goal; {len(warned)} warned about"
+                   + (f" ({', '.join(r['name'] for r in warned)})" if warned else ""))
         if eps:
             ok_p = sum(r["perturbed"]["score"] >= r["goal"] for r in rows)
             worst = max(abs(r["perturbed"]["score"] - r["exact"]["score"]) for r in rows)

@@ -273,6 +273,10 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         final = run.last
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
     mask = win.embed(inside)
+    # (how deep the start's centre, the click, lies in the result: not for a saved surface)
+    depth = rg.click_depth(inside, sp, 0.5 * (init.pole("cN") + init.pole("cS"))
+                           - win.origin_mm) if init.kind == "sphere" and not on_boundary \
+        else None
     del inside, shell
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
@@ -289,7 +293,8 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 "contrast": contrast, "separation": contrast / intensity.sigma,
                 # (null for two constant classes: JSON has no infinity)
                 "class_separation": separated if math.isfinite(separated) else None,
-                "boundary_fraction": on_step, "window": [list(window.lo), list(window.hi)],
+                "boundary_fraction": on_step, "click_depth": depth,
+                "window": [list(window.lo), list(window.hi)],
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p),
                 "restart": record}
     if on_boundary:

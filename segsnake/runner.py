@@ -342,7 +342,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         "warnings": list(volume.warnings) + truth_warnings + result_warnings(result),
     }
     quality = {k: result.settings[k] for k in ("separation", "class_separation",
-                                                "boundary_fraction") if k in result.settings}
+                                                "boundary_fraction", "click_depth")
+               if k in result.settings}
     if quality:
         summary["quality"] = quality
     if truth is not None:
@@ -497,18 +498,28 @@ def result_warnings(result) -> list[str]:
     not resolved (not one that left its window, nor a finer grid that coarse to fine refused:
     neither surface is the result), and (the region energy) an inside and outside that overlap
     in intensity (:func:`segsnake.region.class_separation` below the region parameters'
-    ``min_class_separation``)."""
+    ``min_class_separation``), and a result that grew away from its click
+    (:func:`segsnake.region.click_depth` below ``min_click_depth``)."""
     out = [f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
            f"its order (iteration or round cap reached): the surface may be less accurate"
            for i, h in enumerate(result.history)
            if not h.get("quadrature_resolved", True) and not h.get("left") and h.get("kept", True)]
-    separated = result.settings.get("class_separation")
-    least = result.settings.get("region_params", {}).get("min_class_separation")
-    if separated is not None and least is not None and separated < least:
-        out.append(f"the intensities inside the result and just outside it overlap (their "
-                   f"medians differ by {separated:.2f} of their spread, below {least:g}): its "
-                   f"boundary is weak or it leaked into its surroundings; check it (a shape prior "
-                   f"may hold it)")
+    # (a quality score below its region parameter, and what that says of the result)
+    scores = {
+        ("class_separation", "min_class_separation"):
+            "the intensities inside the result and just outside it overlap (their medians differ "
+            "by {value:.2f} of their spread, below {least:g}): its boundary is weak or it leaked "
+            "into its surroundings; check it (a shape prior may hold it)",
+        ("click_depth", "min_click_depth"):
+            "the result grew away from its start's centre (the click, or the centre estimated "
+            "without one): that point lies at {value:.2f} of the result's greatest depth, below "
+            "{least:g}, near its surface; it may have run on into a neighbouring structure of "
+            "like intensity; check it"}
+    for (key, param), text in scores.items():
+        value = result.settings.get(key)
+        least = result.settings.get("region_params", {}).get(param)
+        if value is not None and least is not None and value < least:
+            out.append(text.format(value=value, least=least))
     return out
 
 

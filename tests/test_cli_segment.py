@@ -120,6 +120,7 @@ def test_segment_end_to_end(ball, tmp_path, capsys):
     assert summary["dice"] >= 0.95 and summary["jaccard"] >= 0.9
     assert summary["shape"] == [24, 24, 24] and summary["warnings"] == []
     assert summary["quality"]["class_separation"] > 5  # far from overlapping its outside
+    assert summary["quality"]["click_depth"] > 0.7  # around its (perturbed) click: 0.76
     assert sorted(os.listdir(out)) == sorted(OUTPUT_NAMES)
     assert snapshot(image.parent) == before
 
@@ -690,6 +691,16 @@ def test_a_result_that_overlaps_its_outside_is_warned_about():
     refused.history[-1]["kept"] = True
     (text,) = result_warnings(refused)
     assert text.startswith("stage 2 (grid 13x13) ended with a quadrature")
+    # a result that grew away from its click (segsnake.region.click_depth)
+    away = result(3.0)
+    away.settings.update(click_depth=0.31, region_params={"min_class_separation": 1.0,
+                                                          "min_click_depth": 0.5})
+    (text,) = result_warnings(away)
+    assert "at 0.31 of the result's greatest depth, below 0.5" in text
+    away.settings["click_depth"] = 0.62
+    assert result_warnings(away) == []
+    away.settings["click_depth"] = None  # a tube, or a start from a saved surface
+    assert result_warnings(away) == []
 
 
 def test_a_prior_gives_the_snake_its_size(ball, tmp_path):

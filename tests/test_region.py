@@ -311,3 +311,56 @@ def test_a_sphere_grows_from_its_click_in_passes_each_within_its_band():
     assert [h["stage"] for h in whole.history][0] == "region"
     assert not any(h["stage"].startswith("region, pass") for h in whole.history)
     assert dice(whole.mask, res.mask) > 0.99
+
+
+def test_click_depth_is_the_points_depth_over_the_deepest_voxels():
+    from segsnake.region import DEPTH_VOXELS, click_depth
+
+    x = np.indices((40, 40, 40)).astype(float) - 20.0
+    ball = np.sqrt((x ** 2).sum(0)) <= 10.0
+    assert click_depth(ball, (1.0, 1.0, 1.0), (20.0, 20.0, 20.0)) == 1.0
+    # 5 mm from the centre of a 10 mm ball: half way (to the voxels' digitization)
+    assert click_depth(ball, (1.0, 1.0, 1.0), (25.0, 20.0, 20.0)) == pytest.approx(0.5, abs=0.05)
+    assert click_depth(ball, (1.0, 1.0, 1.0), (20.0, 20.0, 34.0)) == 0.0  # outside
+    assert click_depth(ball, (1.0, 1.0, 1.0), (20.0, 20.0, 99.0)) == 0.0  # off the grid
+    assert click_depth(np.zeros_like(ball), (1.0, 1.0, 1.0), (20.0, 20.0, 20.0)) == 0.0
+    # in mm: a ball of 10 mm on 0.5 x 1 x 2 mm voxels, its centre at voxel (40, 20, 10)
+    y = np.indices((80, 40, 20)).astype(float) * np.reshape([0.5, 1.0, 2.0], (3, 1, 1, 1)) - 20
+    oblate = np.sqrt((y ** 2).sum(0)) <= 10.0
+    assert click_depth(oblate, (0.5, 1.0, 2.0), (20.0, 20.0, 20.0)) == 1.0
+    assert click_depth(oblate, (0.5, 1.0, 2.0), (20.0, 20.0, 26.0)) == pytest.approx(0.4,
+                                                                                     abs=0.1)
+    # a mask of more than DEPTH_VOXELS is read at every second voxel: the same fractions
+    z = np.indices((100, 100, 100)).astype(float) - 50.0
+    large = np.sqrt((z ** 2).sum(0)) <= 45.0
+    assert large.sum() > DEPTH_VOXELS
+    assert click_depth(large, (1.0, 1.0, 1.0), (50.0, 50.0, 50.0)) == pytest.approx(1.0, abs=0.03)
+    assert click_depth(large, (1.0, 1.0, 1.0), (72.0, 50.0, 50.0)) == pytest.approx(0.5, abs=0.05)
+
+
+def test_a_result_that_left_its_click_is_warned_about():
+    # Two balls of one intensity joined by a neck: from a click in the small one, the 9 x 9
+    # sphere grows through the neck and settles on the large one, away from the click
+    # (measured: the click outside the result, depth 0); from a click in the large one, the
+    # result is around it (depth 1.0) and nothing is said.
+    from segsnake.runner import result_warnings
+
+    x = np.indices((64, 48, 48)).astype(np.float32)
+
+    def ball(centre, r):
+        return ((x - np.reshape(centre, (3, 1, 1, 1))) ** 2).sum(0) <= r * r
+
+    small, large = (14, 24, 24), (42, 24, 24)
+    neck = (x[0] >= 14) & (x[0] <= 42) & ((x[1] - 24) ** 2 + (x[2] - 24) ** 2 <= 36)
+    shape = ball(small, 7) | ball(large, 14) | neck
+    rng = np.random.default_rng(0)
+    image = np.where(shape, 100, 20).astype(np.float32) + rng.normal(0, 8, x.shape[1:]).astype(
+        np.float32)
+    depths = []
+    for centre in (small, large):
+        res = segment_volume(image, (1.0, 1.0, 1.0), SegmentConfig.from_mapping(
+            {"center": list(centre), "radii": [3, 3, 3], "coarse_to_fine": False}))
+        depths.append(res.settings["click_depth"])
+        warned = [w for w in result_warnings(res) if "grew away from its start's centre" in w]
+        assert len(warned) == (centre == small)
+    assert depths[0] < 0.25 and depths[1] > 0.9
