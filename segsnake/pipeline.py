@@ -289,10 +289,13 @@ RESTART_FORMAT = 3  # (2: the edge stages' tubes closed, no frame; session 15; 3
 def restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
     """What a saved result's restart record must agree with to be used: the image (its
     SHA-256, shape, dtype and voxel size) and the options that enter the energy (the region
-    energy's or the edge stages'), as JSON reads them back (a restart compares them with the
-    record's)."""
+    energy's or the edge stages'; of the region parameters, not those that only judge the
+    result, :data:`segsnake.region.JUDGING_FIELDS`), as JSON reads them back (a restart
+    compares them with the record's)."""
     import hashlib
     import json
+
+    from segsnake.region import JUDGING_FIELDS
 
     data = np.ascontiguousarray(image)
     options = {"format": RESTART_FORMAT,
@@ -303,8 +306,17 @@ def restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
                "threshold": config.threshold, "seed_point": config.seed_point,
                "polarity": config.polarity, "tol": config.tol, "max_iter": config.max_iter,
                "prior": config.prior, "prior_weight": config.prior_weight,
-               "region_params": dataclasses.asdict(params)}
+               "region_params": {k: v for k, v in dataclasses.asdict(params).items()
+                                 if k not in JUDGING_FIELDS}}
     return json.loads(json.dumps(options))
+
+
+def _agrees(saved: Any, value: Any) -> bool:
+    """Does a record's entry agree with this run's? The region parameters on the fields this run
+    compares (an older record also holds those that only judge a result)."""
+    if isinstance(value, dict) and isinstance(saved, dict):
+        return all(k in saved and saved[k] == v for k, v in value.items())
+    return saved == value
 
 
 def usable_restart(record, options: dict[str, Any], model: SplineSurface
@@ -313,7 +325,7 @@ def usable_restart(record, options: dict[str, Any], model: SplineSurface
     if not isinstance(record, dict):
         return None, ("not used: the snake has none (a markups file, a render output, or a "
                       "snake.json of an older segsnake)")
-    differ = [k for k, v in options.items() if record.get(k) != v]
+    differ = [k for k, v in options.items() if not _agrees(record.get(k), v)]
     if differ:
         return None, (f"not used: the record's {', '.join(differ)} "
                       f"{'differs' if len(differ) == 1 else 'differ'} from this run's")

@@ -41,7 +41,7 @@ from segsnake.parallel import gaussian_filter
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
            "boundary_fraction", "blend", "two_class_blend",
            "local_outside_mean", "two_class_density", "edge_density", "step_contrast",
-           "class_separation", "click_depth"]
+           "class_separation", "click_depth", "JUDGING_FIELDS"]
 
 @dataclass(frozen=True)
 class RegionParams:
@@ -159,7 +159,7 @@ class RegionParams:
     min_class_separation: float = 1.0
     #: The failure warning for a result that grew away from its click (a sphere started about
     #: a point): the click lies less deep in it than this fraction of its deepest point's depth
-    #: (:func:`click_depth`; 1 at the deepest point, 0 on the surface). A click is placed in the
+    #: (:func:`click_depth`; 1 at the deepest point, 0 outside). A click is placed in the
     #: middle of what is meant, and a surface that grows from it around what looks like the
     #: click stays around it; one that ran on into a neighbour of like intensity (the Colin27
     #: thalamus down the brainstem) leaves the click near its edge. Measured on the real
@@ -190,6 +190,13 @@ class RegionParams:
     #: end would have to cross to reach them, and what the tube already crept into.
     cut_radii: float = 2.0
 
+
+#: The :class:`RegionParams` fields that only judge a result (its "no boundary found" test, its
+#: quality scores and failure warnings) and do not enter the energy: a restart record
+#: (:func:`segsnake.pipeline.restart_options`) does not depend on them, so a result saved before
+#: one of them was added or changed still restarts unchanged.
+JUDGING_FIELDS = frozenset({"min_separation", "step_depth_mm", "step_spreads",
+                            "min_class_separation", "min_click_depth"})
 
 #: Fewest voxels the click's intensity model is estimated from (a sphere around the click's
 #: centre grows until it holds them): below ~20 samples the MAD is not a spread.
@@ -294,8 +301,9 @@ def click_depth(inside: NDArray[np.bool_], spacing: Sequence[float],
                 point_mm: Sequence[float]) -> float:
     """How deep ``point_mm`` (mm, in ``inside``'s grid: voxel ``i`` at ``i * spacing``) lies in
     the mask ``inside``: the distance of its nearest voxel to the nearest voxel outside, over the
-    largest such distance of any voxel inside (1 at the deepest point, 0 outside; on a grid of
-    at most about :data:`DEPTH_VOXELS` inside voxels, every k-th voxel along each axis).
+    largest such distance of any voxel inside (1 at the deepest point, a voxel's depth next to
+    the surface, 0 outside; on a grid of at most about :data:`DEPTH_VOXELS` inside voxels, every
+    k-th voxel along each axis; beyond the array is outside).
 
     Parameters
     ----------
@@ -318,10 +326,11 @@ def click_depth(inside: NDArray[np.bool_], spacing: Sequence[float],
     lo = np.array([b.start for b in box])
     coarse = np.pad(inside[tuple(slice(b.start, b.stop, k) for b in box)], 1)
     depth = ndimage.distance_transform_edt(coarse, sampling=sp)
+    deepest = float(depth.max())  # (0: every k-th voxel missed a mask of thin threads)
     idx = np.rint((np.asarray(point_mm, dtype=np.float64) - lo * sp / k) / sp).astype(int) + 1
-    if np.any(idx < 0) or np.any(idx >= depth.shape):
+    if deepest == 0.0 or np.any(idx < 0) or np.any(idx >= depth.shape):
         return 0.0
-    return float(depth[tuple(idx)] / depth.max())
+    return float(depth[tuple(idx)]) / deepest
 
 
 def boundary_fraction(image_s: NDArray, model, spacing: Sequence[float], polarity: int,

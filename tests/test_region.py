@@ -321,7 +321,8 @@ def test_click_depth_is_the_points_depth_over_the_deepest_voxels():
     assert click_depth(ball, (1.0, 1.0, 1.0), (20.0, 20.0, 20.0)) == 1.0
     # 5 mm from the centre of a 10 mm ball: half way (to the voxels' digitization)
     assert click_depth(ball, (1.0, 1.0, 1.0), (25.0, 20.0, 20.0)) == pytest.approx(0.5, abs=0.05)
-    assert click_depth(ball, (1.0, 1.0, 1.0), (20.0, 20.0, 34.0)) == 0.0  # outside
+    assert click_depth(ball, (1.0, 1.0, 1.0), (20.0, 20.0, 34.0)) == 0.0  # outside its box
+    assert click_depth(ball, (1.0, 1.0, 1.0), (27.0, 27.0, 27.0)) == 0.0  # outside, in its box
     assert click_depth(ball, (1.0, 1.0, 1.0), (20.0, 20.0, 99.0)) == 0.0  # off the grid
     assert click_depth(np.zeros_like(ball), (1.0, 1.0, 1.0), (20.0, 20.0, 20.0)) == 0.0
     # in mm: a ball of 10 mm on 0.5 x 1 x 2 mm voxels, its centre at voxel (40, 20, 10)
@@ -336,6 +337,18 @@ def test_click_depth_is_the_points_depth_over_the_deepest_voxels():
     assert large.sum() > DEPTH_VOXELS
     assert click_depth(large, (1.0, 1.0, 1.0), (50.0, 50.0, 50.0)) == pytest.approx(1.0, abs=0.03)
     assert click_depth(large, (1.0, 1.0, 1.0), (72.0, 50.0, 50.0)) == pytest.approx(0.5, abs=0.05)
+    # ... on anisotropic voxels too: a ball of 40 mm on 0.5 x 1 x 2 mm voxels, read at every 2nd
+    w = np.indices((180, 90, 45)).astype(float) * np.reshape([0.5, 1.0, 2.0], (3, 1, 1, 1)) - 44
+    flat = np.sqrt((w ** 2).sum(0)) <= 40.0
+    assert flat.sum() > DEPTH_VOXELS
+    assert click_depth(flat, (0.5, 1.0, 2.0), (44.0, 44.0, 44.0)) == pytest.approx(1.0, abs=0.05)
+    assert click_depth(flat, (0.5, 1.0, 2.0), (44.0, 44.0, 64.0)) == pytest.approx(0.5, abs=0.06)
+    # a mask whose every 2nd voxel is outside (a checkerboard of threads): no depth to compare
+    # with, 0 (not NaN)
+    i, j, _ = np.indices((160, 160, 160))
+    threads = (i + j) % 2 == 1
+    assert DEPTH_VOXELS < threads.sum() <= 8 * DEPTH_VOXELS
+    assert click_depth(threads, (1.0, 1.0, 1.0), (81.0, 80.0, 80.0)) == 0.0
 
 
 def test_a_result_that_left_its_click_is_warned_about():

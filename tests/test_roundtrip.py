@@ -260,12 +260,43 @@ def test_init_from_a_result(ball, tmp_path, capsys):
         assert np.array_equal(mask_of(out / "mask.nii.gz"), mask_of(start / "mask.nii.gz"))
         dice, rel = dice_and_energy(out, start)
         assert dice == 1.0 and rel <= 1e-9, (dice, rel)
+        # a restart's surface is not started about a click: no click depth, no such warning
+        assert record["summary"]["quality"]["click_depth"] is None
     record = json.loads((m12 / "snake.json").read_text())
     assert record["settings"]["restart_record"].startswith("not used: the snake was resampled")
     assert (record["model"]["m1"], record["model"]["m2"]) == (12, 12)
     assert (record["initial_model"]["m1"], record["initial_model"]["m2"]) == (12, 12)
     dice, _ = dice_and_energy(m12, seg)
     assert dice > 0.99, dice
+
+
+def test_a_record_does_not_depend_on_the_thresholds_that_only_judge_a_result(ball, tmp_path,
+                                                                            capsys):
+    """A result saved by an older segsnake, whose record's region parameters hold the fields
+    that only judge a result (``segsnake.region.JUDGING_FIELDS``; the record of session 20 had
+    four of them, with other values here, and not ``min_click_depth``), restarts unchanged; one
+    whose record differs in a field that enters the energy does not use it."""
+    _, image, seg = ball
+    saved = json.loads((seg / "snake.json").read_text())
+    params = saved["settings"]["restart"]["region_params"]
+    assert not {"min_separation", "min_class_separation", "min_click_depth"} & set(params)
+    for name, change, used in (
+            ("older", {"min_separation": 1.5, "step_depth_mm": 3.0, "step_spreads": 2.0,
+                       "min_class_separation": 0.5}, True),
+            ("growth", {"growth_mm": params["growth_mm"] + 1.0}, False)):
+        doc = json.loads(json.dumps(saved))
+        doc["settings"]["restart"]["region_params"].update(change)
+        start = tmp_path / f"{name}.json"
+        start.write_text(json.dumps(doc))
+        out = tmp_path / name
+        rc, _, err = run("segment", [image, "--out", out, "--init", start, "-q"], capsys)
+        assert rc == 0, err
+        how = json.loads((out / "snake.json").read_text())["settings"]["restart_record"]
+        if used:
+            assert how == "used"
+            assert np.array_equal(mask_of(out / "mask.nii.gz"), mask_of(seg / "mask.nii.gz"))
+        else:
+            assert how == "not used: the record's region_params differs from this run's"
 
 
 TUBE_ITER = ("--max-iter", "1000")
