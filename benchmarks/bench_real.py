@@ -421,7 +421,21 @@ def markdown(info: dict) -> str:
                          f"{_fmt(c.get('hausdorff95_mm'), '.1f')} | {_fmt(c.get('assd_mm'), '.2f')} | "
                          f"{_fmt(c.get('wall_s'), '.1f')} | {_fmt(c.get('peak_rss_mb'), '.0f')} | "
                          f"{flags if tool in OURS else ''} |")
+    lines += ["", warning_coverage(info)]
     return "\n".join(lines)
+
+
+def warning_coverage(info: dict) -> str:
+    """Issue 15's test of the failure warning, over segsnake's runs from the benchmark's clicks
+    (the click and the perturbed clicks of every case): how many of those below Dice 0.8 carry
+    a warning, and how many of those above 0.9 do (none should)."""
+    runs = [r for case in info["cases"] for r in case["runs"]
+            if r["tool"] == SEGSNAKE and r.get("dice") is not None]
+    low = [r for r in runs if r["dice"] < 0.8]
+    high = [r for r in runs if r["dice"] > 0.9]
+    return (f"The failure warning ({SEGSNAKE}, the clicks and perturbed clicks): on "
+            f"{sum(bool(r.get('warnings')) for r in low)} of the {len(low)} results below Dice "
+            f"0.8, on {sum(bool(r.get('warnings')) for r in high)} of the {len(high)} above 0.9.")
 
 
 def tune(cases: list[dict], n_clicks: int, methods: list[str]) -> int:

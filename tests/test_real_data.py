@@ -368,3 +368,11 @@ def test_merge_replaces_a_rerun_tool_and_the_table_counts_failures(tmp_path):
     table = bench_real.markdown(merged)
     assert "| c1 | segsnake | 0.700 | 0.100 / 0.500 / 0.900 (2) |" in table
     assert "| c1 | skimage MCV | 0.200 | 0.000 / 0.150 / 0.300 (2, 1 failed) |" in table
+    # issue 15's count of the failure warning, over segsnake's runs only (not the peers'):
+    # 0.7 and 0.1 below 0.8, none above 0.9
+    assert table.endswith("on 0 of the 2 results below Dice 0.8, on 0 of the 0 above 0.9.")
+    ours = [r for r in runs if r["tool"] == "segsnake"]
+    ours[1]["warnings"] = ["the result grew away from its start's centre"]  # (the 0.1)
+    ours[2]["dice"] = 0.95
+    assert bench_real.markdown(merged).endswith("on 1 of the 2 results below Dice 0.8, on 0 of "
+                                                "the 1 above 0.9.")
