@@ -329,16 +329,19 @@ class _Surface:
         return ((self.model._basis_u(uu, 0) @ flat).reshape(-1, n_l, 3),
                 (self.model._basis_u(uu, 1) @ flat).reshape(-1, n_l, 3))
 
-    def at(self, R: NDArray, Ru: NDArray, v: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        """sigma, sigma_u, sigma_v at ``(u_i, v_i)`` from the columns of ``u_i``: the four Keys
-        weights of each ``v`` (rows ``l0 - 1 .. l0 + 2`` of the knot interval ``l0``)."""
+    def at(self, R: NDArray, Ru: NDArray, v: NDArray, line: NDArray | None = None,
+           l0: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+        """sigma, sigma_u, sigma_v at ``(u_i, v_i)`` from the columns of ``u_i`` (``R[i]``, or
+        ``R[line[i]]``): the four Keys weights of each ``v`` (rows ``l0 - 1 .. l0 + 2`` of its
+        knot interval ``l0``; given, for a ``v`` on the interval's upper knot)."""
         m2 = self.model.m2
         x = m2 * np.asarray(v, dtype=np.float64)
-        l0 = np.clip(np.floor(x).astype(int), 0, m2 - 1)
+        if l0 is None:
+            l0 = np.clip(np.floor(x).astype(int), 0, m2 - 1)
         cols = l0[:, None] + np.arange(4)[None, :]  # array index of l = l0 - 1 + j
         t = x[:, None] - (cols - 1)
         w, dw = keys(t), keys(t, 1) * m2
-        rows = np.arange(len(v))[:, None]
+        rows = (np.arange(len(v)) if line is None else line)[:, None]
         Rn, Run = R[rows, cols], Ru[rows, cols]  # (n, 4, 3)
         return (np.einsum("nj,njd->nd", w, Rn), np.einsum("nj,njd->nd", w, Run),
                 np.einsum("nj,njd->nd", dw, Rn))
@@ -606,22 +609,6 @@ def _band_pairs(m2: int, lo: NDArray, hi: NDArray, nu: int
     return st, line, l, alpha, beta
 
 
-def _line_points(m2: int, R: NDArray, Ru: NDArray | None, line: NDArray, l: NDArray,
-                 v: NDArray) -> tuple[NDArray, ...]:
-    """sigma (and sigma_u, sigma_v with ``Ru``) at ``v`` on the lines ``line`` (columns ``R``,
-    ``Ru``), ``v`` in the knot interval ``l``."""
-    tau = m2 * v - l
-    powers = np.stack([np.ones_like(tau), tau, tau * tau, tau * tau * tau], axis=-1)
-    cols = l[:, None] + np.arange(4)[None, :]
-    rows = R[line[:, None], cols]  # (N, 4, 3)
-    s = np.einsum("nj,njd->nd", powers @ KEYS_POWER.T, rows)
-    if Ru is None:
-        return (s,)
-    dpow = np.stack([np.zeros_like(tau), np.ones_like(tau), 2 * tau, 3 * tau * tau], axis=-1)
-    return (s, np.einsum("nj,njd->nd", powers @ KEYS_POWER.T, Ru[line[:, None], cols]),
-            np.einsum("nj,njd->nd", m2 * (dpow @ KEYS_POWER.T), rows))
-
-
 def _band_roots(surf: _Surface, R: NDArray, p: NDArray, t: NDArray, bands: _Bands
                 ) -> tuple[tuple[NDArray, ...], tuple[NDArray, ...]]:
     """Every crossing of the lines (columns ``R (nu, L, 3)``) with each plane inside its full
@@ -758,8 +745,7 @@ def _band_moments(surf: _Surface, R: NDArray, Ru: NDArray, w: NDArray, p: NDArra
     k = np.repeat(np.arange(n), nu)
     line = np.tile(np.arange(nu), n)
     vlo = bands.lo[k]
-    s, su, _ = _line_points(m2, R, Ru, line, np.clip(np.floor(m2 * vlo).astype(int), 0, m2 - 1),
-                            vlo)
+    s, su, _ = surf.at(R, Ru, vlo, line)
     ring = _green((s - p[k]).reshape(n, nu, 3), su.reshape(n, nu, 3), np.broadcast_to(w, (n, nu)),
                   e1, e2)
     return moments - np.stack(ring, axis=1), many
@@ -770,7 +756,7 @@ def _band_points(surf: _Surface, u: NDArray, p: NDArray, t: NDArray, bands: _Ban
     """The full sections' points on the lines ``u``: ``(station, line, point)`` of every
     crossing, in order of station, line and ``v``."""
     m2 = surf.model.m2
-    R, _ = surf.columns(u)
+    R, Ru = surf.columns(u)
     span = np.ceil(m2 * bands.hi) - np.floor(m2 * bands.lo) + 1  # knot intervals, at most
     block = max(1, int(500_000 // (len(u) * max(float(span.max(initial=1)), 1.0))))
     out = []
@@ -778,7 +764,7 @@ def _band_points(surf: _Surface, u: NDArray, p: NDArray, t: NDArray, bands: _Ban
         b = min(len(p), a + block)
         (st, line, l, _, _), (pi, vr, _) = _band_roots(surf, R, p[a:b], t[a:b],
                                                        bands.take(slice(a, b)))
-        out.append((a + st[pi], line[pi], _line_points(m2, R, None, line[pi], l[pi], vr)[0]))
+        out.append((a + st[pi], line[pi], surf.at(R, Ru, vr, line[pi], l[pi])[0]))
     return (np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out]),
             np.concatenate([o[2] for o in out]))
 
