@@ -41,7 +41,7 @@ from segsnake.parallel import gaussian_filter
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
            "boundary_fraction", "blend", "two_class_blend",
            "local_outside_mean", "two_class_density", "edge_density", "step_contrast",
-           "class_separation", "click_depth", "JUDGING_FIELDS"]
+           "class_separation", "click_depth", "coarse_factors", "JUDGING_FIELDS"]
 
 @dataclass(frozen=True)
 class RegionParams:
@@ -137,6 +137,16 @@ class RegionParams:
     growth_mm: float = 8.0
     #: ... until a pass adds less than this fraction of the volume (dimensionless).
     growth_stop: float = 0.01
+    #: The passes run on the image's grid coarsened by an integer factor along each axis, the
+    #: largest that keeps the coarse voxel within this fraction of the smaller of the start's
+    #: smallest radius and ``growth_mm`` (:func:`coarse_factors`): four voxels across the band
+    #: a pass grows in and across the start, which a pass's surface must resolve. The passes
+    #: only bring the surface to the boundary; the two-class rounds place it on the image's
+    #: own grid. A start of under 4 voxels' radius runs its passes on the image's grid.
+    #: (Measured on the Colin27 brain's click and perturbed clicks, docs/benchmarks.md session
+    #: 22: the same Dice at 1/8, 1/4 and 3/8, the passes' time divided by about the factor
+    #: cubed.) 0: every pass on the image's grid.
+    coarse_fraction: float = 0.25
     #: Longest move of the surface per optimizer step (mm): about the smoothing widths, so that a
     #: step cannot jump across a boundary it has not seen.
     step_mm: float = 2.0
@@ -189,6 +199,25 @@ class RegionParams:
     #: tube's own reach beyond the plane, whichever is further: the branches' roots, which the
     #: end would have to cross to reach them, and what the tube already crept into.
     cut_radii: float = 2.0
+
+
+def coarse_factors(radius_mm: float, spacing: Sequence[float], growth_mm: float,
+                   fraction: float) -> tuple[int, int, int]:
+    """Integer factors by which the growth passes coarsen each axis of the grid: the largest
+    that keep the coarse voxel within ``fraction`` of the smaller of ``radius_mm`` (the start's
+    smallest radius) and ``growth_mm`` (the radius alone when ``growth_mm`` is 0: one unbounded
+    pass), at least 1 (:attr:`RegionParams.coarse_fraction`).
+
+    Examples
+    --------
+    >>> coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.25)
+    (2, 2, 2)
+    >>> coarse_factors(3.0, (0.63, 0.63, 5.0), 8.0, 0.25)
+    (1, 1, 1)
+    """
+    scale = min(radius_mm, growth_mm) if growth_mm > 0 else radius_mm
+    voxel = fraction * scale
+    return tuple(max(1, int(math.floor(voxel / s))) for s in spacing)
 
 
 #: The :class:`RegionParams` fields that only judge a result (its "no boundary found" test, its

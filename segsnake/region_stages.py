@@ -94,14 +94,14 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         del core
     run.timings["edge_map_s"] = time.perf_counter() - t0
 
-    def stage(start, density, name, tol=None, stationary=False, resume=None):
-        # One stage in a window around the surface; while its surface comes near a face of the
+    def stage(on, window, start, density, name, tol=None, stationary=False, resume=None):
+        # One stage of the run ``on`` (the image's grid, or the growth passes' coarser one) in
+        # a window of its grid around the surface; while its surface comes near a face of the
         # window (which holds it back from then on), on from there in a window around both
-        # (segsnake.window).
-        nonlocal window
+        # (segsnake.window). Returns the surface and the window it ended in.
         margin, used = p.window_mm, 0
         while True:
-            run.lookup = None  # (the last stage's: not needed while this one's is built)
+            on.lookup = None  # (the last stage's: not needed while this one's is built)
 
             spent = []
 
@@ -112,31 +112,32 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 inner = values[(slice(FOV_PAD, -FOV_PAD or None),) * 3]
                 density(window, inner)
                 for cut in cuts.values():
-                    cut.apply(inner, window.lo, sp, FOV_DENSITY)
+                    cut.apply(inner, window.lo, window.spacing, FOV_DENSITY)
                 spent.append(time.perf_counter() - t0)
 
             t0 = time.perf_counter()
-            lookup = run.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
-            run.timings["edge_map_s"] += sum(spent)
-            run.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
+            lookup = on.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
+            on.timings["edge_map_s"] += sum(spent)
+            on.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
             # (a surface that comes near a face of the window leaves the stage at once: its
             # further course would be the window's, not the image's)
-            model = window.model_out(run.region(
+            model = window.model_out(on.region(
                 window.model_in(start), lookup, name, tol, stationary, resume,
                 leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm), used=used))
             del lookup
             if not window.reaches(model, p.shell_mm):
-                return model
-            last = run.history[-1]
+                return model, window
+            last = on.history[-1]
             last["window_grown"] = True
             old, margin = window, 2 * margin  # (a surface that grows far needs few windows)
-            window = window.union(Window.around(model, image.shape, sp, margin))
+            window = window.union(Window.around(model, window.full_shape, window.spacing,
+                                                margin))
             resume = None
             if last.get("left"):
                 # Up to here the window's energy was the whole volume's: the stage goes on from
                 # this iterate with the same functional (reference surface, quadrature order).
-                reference = window.model_in(old.model_out(run.last["reference"]))
-                start, resume = model, (reference, tuple(run.last["order"]))
+                reference = window.model_in(old.model_out(on.last["reference"]))
+                start, resume = model, (reference, tuple(on.last["order"]))
                 used += last["iterations"]
             else:  # (ended near a face it never came near while running: afresh)
                 used = 0
@@ -154,40 +155,58 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         # outside it up to max_mm (inf farther): both found in the box max_mm (and two voxels)
         # around the surface, beyond which nothing is inside and nothing that near (the window
         # is wider: the passes' windows follow their union, the rounds' the surface's moves).
-        box = win.within(Window.around(surface, image.shape, sp, max_mm + 2 * max(sp)))
+        spacing = win.spacing
+        box = win.within(Window.around(surface, win.full_shape, spacing,
+                                       max_mm + 2 * max(spacing)))
         inside = np.zeros(win.shape, dtype=bool)
         distance = np.full(win.shape, np.inf, dtype=np.float32)
         part = box.slices_in(win)
-        inside[part] = rasterize(box.model_in(surface), box.shape, sp)
-        distance[part] = distance_within(inside[part], sp, max_mm)
+        inside[part] = rasterize(box.model_in(surface), box.shape, spacing)
+        distance[part] = distance_within(inside[part], spacing, max_mm)
         return inside, distance
 
-    def grow(model):
+    def grow(model, window):
         # The region stage in passes, each within growth_mm beyond its starting surface (a
-        # sphere; a tube's start already spans its structure along the user's line).
+        # sphere; a tube's start already spans its structure along the user's line). Returns
+        # the surface and the window of the image's grid for the rounds.
         if model.kind != "sphere" or p.growth_mm <= 0:
-            return stage(model, lambda win, out: rg.region_density(image_s[win.slices],
-                                                                   intensity, out),
+            return stage(run, window, model,
+                         lambda win, out: rg.region_density(image_s[win.slices], intensity, out),
                          "region", p.interim_tol)
+        # The passes on a coarser grid where it still samples the start and the band finely
+        # (RegionParams.coarse_fraction): they only bring the surface to the boundary, which
+        # the rounds then place on the image's own grid.
+        factors = rg.coarse_factors(_smallest_radius(model), sp, p.growth_mm, p.coarse_fraction)
+        coarse = any(f > 1 for f in factors)
+        on, win, grid_s = run, window, image_s
+        if coarse:
+            grid_s = image_s[tuple(slice(None, None, f) for f in factors)]
+            on = run.on_grid(tuple(s * f for s, f in zip(sp, factors)), grid_s.shape)
+            win = Window.around(model, grid_s.shape, on.sp, p.window_mm)
         # (each pass that goes on moves the surface out; it cannot cross the image more than
         # once: the count only bounds the time)
         passes = math.ceil(math.dist((0, 0, 0), np.multiply(image.shape, sp)) / p.growth_mm)
         for k in range(passes):
             start, before = model, abs(model.volume())
 
-            def density(win, out, start=start):
-                rg.region_density(image_s[win.slices], intensity, out)
-                out[~np.isfinite(beyond(start, win, p.growth_mm)[1])] = FOV_DENSITY
+            def density(w, out, start=start):
+                rg.region_density(grid_s[w.slices], intensity, out)
+                out[~np.isfinite(beyond(start, w, p.growth_mm)[1])] = FOV_DENSITY
 
-            model = stage(start, density, f"region, pass {k + 1}", p.interim_tol)
-            run.history[-1]["volume_mm3"] = after = abs(model.volume())
+            model, win = stage(on, win, start, density, f"region, pass {k + 1}", p.interim_tol)
+            on.history[-1]["volume_mm3"] = after = abs(model.volume())
+            if coarse:
+                on.history[-1]["voxel_mm"] = list(on.sp)
             if after < before * (1 + p.growth_stop):
                 break
-        return model
+        if not coarse:
+            return model, win
+        run.take_counts(on)
+        return model, Window.around(model, image.shape, sp, p.window_mm)
 
     report("region", 0.1)
     if not on_boundary:
-        model = grow(model)
+        model, window = grow(model, window)
         if model.kind == "cylinder" and config.m2 is None:
             # Now that the tube's calibre is known: rings a radius apart along it.
             from segsnake.resample import interpolate_tube
@@ -257,8 +276,9 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         if restart is not None:
             resume = (model_from_dict(restart["reference"]), tuple(restart["order"]))
         # (the last round runs to the final tolerance in windows that follow it, stationary)
-        model = stage(model, density, f"two classes, round {k + 1}",
-                      None if k == last else p.interim_tol, stationary=k == last, resume=resume)
+        model, window = stage(run, window, model, density, f"two classes, round {k + 1}",
+                              None if k == last else p.interim_tol, stationary=k == last,
+                              resume=resume)
         del density, shell
         if k < last:
             branching(model)
@@ -401,6 +421,15 @@ def polish(run, model: SplineSurface) -> SplineSurface:
     return run.region(model, run.lookup, f"polish: {last['stage']}", stationary=True,
                       resume=(last["reference"], tuple(last["order"])), at_rest=False,
                       used=last["iterations"])
+
+
+def _smallest_radius(model: SplineSurface) -> float:
+    """A sphere's smallest distance (mm) from the middle of its poles to its surface,
+    sampled 4 times per knot interval (an ellipsoid's smallest semi-axis)."""
+    u = np.arange(4 * model.m1) / (4 * model.m1)
+    v = np.linspace(0.0, 1.0, 4 * model.m2 + 1)
+    centre = 0.5 * (model.pole("cN") + model.pole("cS"))
+    return float(np.linalg.norm(model.positions(u, v) - centre, axis=-1).min())
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:

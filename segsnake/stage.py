@@ -12,6 +12,7 @@ of such stages (docs/design.md).
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass
@@ -66,6 +67,19 @@ class Run:
         self.iterations = 0
         self.timings: dict[str, float] = {"lookup_s": 0.0, "optimize_s": 0.0}
         self.last: dict[str, Any] | None = None  # the last stage's energy and functional
+
+    def on_grid(self, spacing: Sequence[float], shape: Sequence[int]) -> "Run":
+        """The same segmentation's stages on another grid of the same space (voxel size
+        ``spacing`` mm, array ``shape``): they go into this run's history and timings;
+        :meth:`take_counts` takes their iterations and last stage back."""
+        other = copy.copy(self)
+        other.sp = tuple(spacing)
+        other.bounds = (np.asarray(shape) - 1) * np.asarray(spacing)
+        return other
+
+    def take_counts(self, other: "Run") -> None:
+        """The iterations and last stage of a run :meth:`on_grid` made from this one."""
+        self.iterations, self.last = other.iterations, other.last
 
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
                weight=-1.0, region=False, stationary=False, resume=None, leaves=None, used=0,

@@ -11,8 +11,8 @@ from segsnake.errors import ConfigError, SegmentationError
 from segsnake.metrics import dice
 from segsnake.phantoms import make_phantom
 from segsnake.pipeline import region_energy, segment_volume
-from segsnake.region import (IntensityModel, RegionParams, blend, edge_density,
-                             local_outside_mean, region_density, two_class_blend,
+from segsnake.region import (IntensityModel, RegionParams, blend, coarse_factors,
+                             edge_density, local_outside_mean, region_density, two_class_blend,
                              two_class_density)
 
 
@@ -311,6 +311,35 @@ def test_a_sphere_grows_from_its_click_in_passes_each_within_its_band():
     assert [h["stage"] for h in whole.history][0] == "region"
     assert not any(h["stage"].startswith("region, pass") for h in whole.history)
     assert dice(whole.mask, res.mask) > 0.99
+
+
+def test_a_large_start_grows_in_passes_on_a_coarser_grid_and_the_rounds_place_it_alike():
+    # A start of 9.6 mm with 8 mm bands on 1 mm voxels: the passes run on 2 mm voxels (a
+    # quarter of the band); the two-class rounds on the image's grid then place the surface as
+    # they do after passes on the image's own grid.
+    ph = make_phantom("ball", seed=3, noise=0.1)
+    truth = ph.truth.astype(bool)
+    config = SegmentConfig.from_mapping({**ph.init, "coarse_to_fine": False})
+    assert coarse_factors(9.6, ph.spacing, 8.0, 0.25) == (2, 2, 2)
+    res = segment_volume(ph.image, ph.spacing, config)
+    fine = segment_volume(ph.image, ph.spacing, config,
+                          region_params=RegionParams(coarse_fraction=0.0))
+    passes = [h for h in res.history if h["stage"].startswith("region, pass")]
+    assert passes and all(h["voxel_mm"] == [2.0, 2.0, 2.0] for h in passes)
+    assert not any("voxel_mm" in h for h in res.history if h not in passes)
+    assert not any("voxel_mm" in h for h in fine.history)
+    # the passes' iterations are the segmentation's as any stage's
+    assert res.iterations == sum(h["iterations"] for h in res.history)
+    assert dice(res.mask, truth) >= 0.98
+    assert dice(res.mask, fine.mask) > 0.995
+
+
+def test_coarse_factors_keep_the_coarse_voxel_within_a_fraction_of_the_start_and_band():
+    assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.375) == (3, 3, 3)
+    assert coarse_factors(23.0, (0.5, 1.0, 2.5), 8.0, 0.25) == (4, 2, 1)
+    assert coarse_factors(5.0, (1.0, 1.0, 1.0), 8.0, 0.25) == (1, 1, 1)  # the start decides
+    assert coarse_factors(40.0, (1.0, 1.0, 1.0), 0.0, 0.25) == (10, 10, 10)  # one pass: r
+    assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.0) == (1, 1, 1)
 
 
 def test_click_depth_is_the_points_depth_over_the_deepest_voxels():
