@@ -32,7 +32,20 @@ static void weights(double u, double w[4], double dw[4])
     dw[3] = 0.5 * u2;
 }
 
+/* Compiled twice where the compiler can dispatch at run time (GCC on x86-64): for AVX2 and for
+ * the baseline, the loader picking the one the CPU runs. The arithmetic is the same operations
+ * in the same order either way (no fused multiply-adds: AVX2 does not enable FMA), so every
+ * machine gives the same numbers; AVX2 only widens the loads and products (measured on a
+ * brain-sized float32 lookup: 100-110 -> 70-75 ns a point on a surface's quadrature nodes,
+ * docs/benchmarks.md session 22). */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define DISPATCH __attribute__((target_clones("avx2", "default")))
+#else
+#define DISPATCH
+#endif
+
 #define DEFINE_SAMPLE_POINTS(NAME, CTYPE) \
+DISPATCH \
 static void NAME(const CTYPE *coef, const Py_ssize_t pshape[3], const Py_ssize_t shape[3], \
                           const double spacing[3], const double *pts, Py_ssize_t n, \
                           double *g_out, double *grad_out) \

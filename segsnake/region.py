@@ -138,15 +138,17 @@ class RegionParams:
     #: ... until a pass adds less than this fraction of the volume (dimensionless).
     growth_stop: float = 0.01
     #: The passes run on the image's grid coarsened by an integer factor along each axis, the
-    #: largest that keeps the coarse voxel within this fraction of the smaller of the start's
-    #: smallest radius and ``growth_mm`` (:func:`coarse_factors`): four voxels across the band
-    #: a pass grows in and across the start, which a pass's surface must resolve. The passes
-    #: only bring the surface to the boundary; the two-class rounds place it on the image's
-    #: own grid. A start of under 4 voxels' radius runs its passes on the image's grid.
-    #: (Measured on the Colin27 brain's click and perturbed clicks, docs/benchmarks.md session
-    #: 22: the same Dice at 1/8, 1/4 and 3/8, the passes' time divided by about the factor
-    #: cubed.) 0: every pass on the image's grid.
-    coarse_fraction: float = 0.25
+    #: largest that keeps the coarse voxel within this fraction of the start's smallest radius
+    #: and within twice this fraction of ``growth_mm`` (:func:`coarse_factors`): eight voxels
+    #: across the start's radius, four across the band a pass grows in, both of which a pass's
+    #: surface must resolve. The passes only bring the surface to the boundary; the two-class
+    #: rounds place it on the image's own grid. On 1 mm voxels a start of less than 16 mm
+    #: runs its passes on the image's grid; a large organ's on 2 mm voxels, an eighth of the
+    #: voxels. (Measured, docs/benchmarks.md session 22: the Colin27 brain's click and
+    #: perturbed clicks the same Dice with 1, 2 and 3 mm passes; at a quarter of the radius the
+    #: lung tumour's 8.4 mm start on 1.9 mm pixels lost 0.025 on a perturbed click, a
+    #: cerebellum start of 8.9 mm on 2 mm voxels 0.25.) 0: every pass on the image's grid.
+    coarse_fraction: float = 0.125
     #: Longest move of the surface per optimizer step (mm): about the smoothing widths, so that a
     #: step cannot jump across a boundary it has not seen.
     step_mm: float = 2.0
@@ -204,18 +206,18 @@ class RegionParams:
 def coarse_factors(radius_mm: float, spacing: Sequence[float], growth_mm: float,
                    fraction: float) -> tuple[int, int, int]:
     """Integer factors by which the growth passes coarsen each axis of the grid: the largest
-    that keep the coarse voxel within ``fraction`` of the smaller of ``radius_mm`` (the start's
-    smallest radius) and ``growth_mm`` (the radius alone when ``growth_mm`` is 0: one unbounded
-    pass), at least 1 (:attr:`RegionParams.coarse_fraction`).
+    that keep the coarse voxel within ``fraction`` of ``radius_mm`` (the start's smallest
+    radius) and within ``2 fraction`` of ``growth_mm`` (no such bound when ``growth_mm`` is 0:
+    one unbounded pass), at least 1 (:attr:`RegionParams.coarse_fraction`).
 
     Examples
     --------
-    >>> coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.25)
+    >>> coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.125)
     (2, 2, 2)
-    >>> coarse_factors(3.0, (0.63, 0.63, 5.0), 8.0, 0.25)
+    >>> coarse_factors(8.4, (0.63, 0.63, 5.0), 8.0, 0.125)
     (1, 1, 1)
     """
-    scale = min(radius_mm, growth_mm) if growth_mm > 0 else radius_mm
+    scale = min(radius_mm, 2.0 * growth_mm) if growth_mm > 0 else radius_mm
     voxel = fraction * scale
     return tuple(max(1, int(math.floor(voxel / s))) for s in spacing)
 

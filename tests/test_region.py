@@ -314,13 +314,16 @@ def test_a_sphere_grows_from_its_click_in_passes_each_within_its_band():
 
 
 def test_a_large_start_grows_in_passes_on_a_coarser_grid_and_the_rounds_place_it_alike():
-    # A start of 9.6 mm with 8 mm bands on 1 mm voxels: the passes run on 2 mm voxels (a
-    # quarter of the band); the two-class rounds on the image's grid then place the surface as
-    # they do after passes on the image's own grid.
+    # A start of 17 mm in the 19 mm ball with 8 mm bands on 1 mm voxels: the passes run on
+    # 2 mm voxels (an eighth of the start's radius, a quarter of the band); the two-class
+    # rounds on the image's grid then place the surface as they do after passes on the image's
+    # own grid. The phantom's own start (9.6 mm) keeps the image's grid.
     ph = make_phantom("ball", seed=3, noise=0.1)
     truth = ph.truth.astype(bool)
-    config = SegmentConfig.from_mapping({**ph.init, "coarse_to_fine": False})
-    assert coarse_factors(9.6, ph.spacing, 8.0, 0.25) == (2, 2, 2)
+    assert coarse_factors(16.0, ph.spacing, 8.0, RegionParams().coarse_fraction) == (2, 2, 2)
+    assert coarse_factors(9.6, ph.spacing, 8.0, RegionParams().coarse_fraction) == (1, 1, 1)
+    config = SegmentConfig.from_mapping({**ph.init, "radii": [17.0] * 3,
+                                         "coarse_to_fine": False})
     res = segment_volume(ph.image, ph.spacing, config)
     fine = segment_volume(ph.image, ph.spacing, config,
                           region_params=RegionParams(coarse_fraction=0.0))
@@ -335,10 +338,11 @@ def test_a_large_start_grows_in_passes_on_a_coarser_grid_and_the_rounds_place_it
 
 
 def test_coarse_factors_keep_the_coarse_voxel_within_a_fraction_of_the_start_and_band():
-    assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.375) == (3, 3, 3)
-    assert coarse_factors(23.0, (0.5, 1.0, 2.5), 8.0, 0.25) == (4, 2, 1)
-    assert coarse_factors(5.0, (1.0, 1.0, 1.0), 8.0, 0.25) == (1, 1, 1)  # the start decides
-    assert coarse_factors(40.0, (1.0, 1.0, 1.0), 0.0, 0.25) == (10, 10, 10)  # one pass: r
+    assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.125) == (2, 2, 2)
+    assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.1875) == (3, 3, 3)
+    assert coarse_factors(40.0, (0.5, 1.0, 2.5), 8.0, 0.125) == (4, 2, 1)  # the band decides
+    assert coarse_factors(15.0, (1.0, 1.0, 1.0), 8.0, 0.125) == (1, 1, 1)  # the start decides
+    assert coarse_factors(40.0, (1.0, 1.0, 1.0), 0.0, 0.125) == (5, 5, 5)  # one pass: r alone
     assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.0) == (1, 1, 1)
 
 
