@@ -61,6 +61,7 @@ except ImportError as exc:  # an install that skipped the build (no compiler), o
     raise ImportError("segsnake's compiled kernel segsnake/_sampling.c is not built: reinstall "
                       "with `pip install -e .` (or `make install`), which needs a C compiler "
                       "and the Python headers") from exc
+from segsnake import cancel
 from segsnake.parallel import pieces, slabs, spline_filter, thread_map
 
 __all__ = ["Lookup"]
@@ -314,13 +315,20 @@ class Lookup:
         p = np.ascontiguousarray(p.reshape(-1, 3))
         g = np.empty(len(p))
         grad = np.empty((len(p), 3))
-        # The kernel releases the GIL: equal blocks of points run in parallel threads.
+        # The kernel releases the GIL: equal blocks of points run in parallel threads; one
+        # block runs in this thread (a hand-off to the pool cost about what the kernel takes
+        # for a thousand points: the 1 296 nodes of an order-4 9 x 9 sphere 0.21 -> 0.12 ms).
 
         def block(sl: slice) -> None:
             _sampling.sample(self._flat, self._pshape, self.shape, self.spacing, p[sl],
                              g[sl], grad[sl])
 
-        thread_map(block, pieces(len(p), _BLOCK))
+        blocks = pieces(len(p), _BLOCK)
+        if len(blocks) == 1:
+            cancel.check()
+            block(blocks[0])
+        else:
+            thread_map(block, blocks)
         if single:
             return g[0], grad[0]
         return g, grad
