@@ -32,13 +32,16 @@ static void weights(double u, double w[4], double dw[4])
     dw[3] = 0.5 * u2;
 }
 
-/* Compiled twice where the compiler can dispatch at run time (GCC on x86-64): for AVX2 and for
- * the baseline, the loader picking the one the CPU runs. The arithmetic is the same operations
- * in the same order either way (no fused multiply-adds: AVX2 does not enable FMA), so every
- * machine gives the same numbers; AVX2 only widens the loads and products (measured on a
- * brain-sized float32 lookup: 100-110 -> 70-75 ns a point on a surface's quadrature nodes,
- * docs/benchmarks.md session 22). */
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+/* Compiled twice where the compiler and the C library dispatch at run time (GCC 6 or later on
+ * x86-64 Linux with glibc, whose loader resolves the ifunc): for AVX2 and for the baseline, the
+ * loader picking the one the CPU runs. The arithmetic is the same operations in the same order
+ * either way (AVX2 does not enable FMA, and setup.py builds with -ffp-contract=off), so every
+ * machine gives the same numbers (checked by hand: a 70 560-point sampling to the last bit, the
+ * Colin27 brain's result to every digit of its energy); AVX2 only widens the loads and products
+ * (a brain-sized float32 lookup: 100-110 -> 70-75 ns a point on a surface's quadrature nodes,
+ * docs/benchmarks.md session 22). Elsewhere (clang, musl, Windows, other CPUs) one version. */
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 6 && defined(__x86_64__) && \
+    defined(__linux__) && defined(__GLIBC__)
 #define DISPATCH __attribute__((target_clones("avx2", "default")))
 #else
 #define DISPATCH

@@ -316,8 +316,8 @@ class Lookup:
         g = np.empty(len(p))
         grad = np.empty((len(p), 3))
         # The kernel releases the GIL: equal blocks of points run in parallel threads; one
-        # block runs in this thread (a hand-off to the pool cost about what the kernel takes
-        # for a thousand points: the 1 296 nodes of an order-4 9 x 9 sphere 0.21 -> 0.12 ms).
+        # block runs in this thread (a hand-off to the pool costs about what the kernel takes
+        # for a thousand points: docs/benchmarks.md, session 22).
 
         def block(sl: slice) -> None:
             _sampling.sample(self._flat, self._pshape, self.shape, self.spacing, p[sl],

@@ -290,12 +290,13 @@ def restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
     """What a saved result's restart record must agree with to be used: the image (its
     SHA-256, shape, dtype and voxel size) and the options that enter the energy (the region
     energy's or the edge stages'; of the region parameters, not those that only judge the
-    result, :data:`segsnake.region.JUDGING_FIELDS`), as JSON reads them back (a restart
-    compares them with the record's)."""
+    result, :data:`segsnake.region.JUDGING_FIELDS`, nor those that only shape the growth
+    passes a restart never runs, :data:`segsnake.region.PASS_FIELDS`), as JSON reads them back
+    (a restart compares them with the record's)."""
     import hashlib
     import json
 
-    from segsnake.region import JUDGING_FIELDS
+    from segsnake.region import JUDGING_FIELDS, PASS_FIELDS
 
     data = np.ascontiguousarray(image)
     options = {"format": RESTART_FORMAT,
@@ -307,13 +308,13 @@ def restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
                "polarity": config.polarity, "tol": config.tol, "max_iter": config.max_iter,
                "prior": config.prior, "prior_weight": config.prior_weight,
                "region_params": {k: v for k, v in dataclasses.asdict(params).items()
-                                 if k not in JUDGING_FIELDS}}
+                                 if k not in JUDGING_FIELDS | PASS_FIELDS}}
     return json.loads(json.dumps(options))
 
 
 def _agrees(saved: Any, value: Any) -> bool:
     """Does a record's entry agree with this run's? The region parameters on the fields this run
-    compares (an older record also holds those that only judge a result)."""
+    compares (an older record also holds those that only judge a result or shape the passes)."""
     if isinstance(value, dict) and isinstance(saved, dict):
         return all(k in saved and saved[k] == v for k, v in value.items())
     return saved == value

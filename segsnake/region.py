@@ -41,7 +41,8 @@ from segsnake.parallel import gaussian_filter
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
            "boundary_fraction", "blend", "two_class_blend",
            "local_outside_mean", "two_class_density", "edge_density", "step_contrast",
-           "class_separation", "click_depth", "coarse_factors", "JUDGING_FIELDS"]
+           "class_separation", "click_depth", "coarse_factors", "JUDGING_FIELDS",
+           "PASS_FIELDS"]
 
 @dataclass(frozen=True)
 class RegionParams:
@@ -147,7 +148,10 @@ class RegionParams:
     #: voxels. (Measured, docs/benchmarks.md session 22: the Colin27 brain's click and
     #: perturbed clicks the same Dice with 1, 2 and 3 mm passes; at a quarter of the radius the
     #: lung tumour's 8.4 mm start on 1.9 mm pixels lost 0.025 on a perturbed click, a
-    #: cerebellum start of 8.9 mm on 2 mm voxels 0.25.) 0: every pass on the image's grid.
+    #: cerebellum start of 8.9 mm on 2 mm voxels 0.25.) The coarse grid reads the image
+    #: smoothed at ``smooth_mm`` (no further smoothing: coarse voxel i stays the image's voxel
+    #: f i), well sampled at the default 2 mm; a ``growth_mm`` far beyond 8 mm would read it
+    #: sparser than its smoothing. 0: every pass on the image's grid.
     coarse_fraction: float = 0.125
     #: Longest move of the surface per optimizer step (mm): about the smoothing widths, so that a
     #: step cannot jump across a boundary it has not seen.
@@ -207,8 +211,10 @@ def coarse_factors(radius_mm: float, spacing: Sequence[float], growth_mm: float,
                    fraction: float) -> tuple[int, int, int]:
     """Integer factors by which the growth passes coarsen each axis of the grid: the largest
     that keep the coarse voxel within ``fraction`` of ``radius_mm`` (the start's smallest
-    radius) and within ``2 fraction`` of ``growth_mm`` (no such bound when ``growth_mm`` is 0:
-    one unbounded pass), at least 1 (:attr:`RegionParams.coarse_fraction`).
+    radius) and within ``2 fraction`` of ``growth_mm`` (the passes' band, positive), at least
+    1 (:attr:`RegionParams.coarse_fraction`). A ratio within 1e-9 of an integer counts as
+    that integer: a start of exactly the bound's size (16 mm on 1 mm voxels at 1/8) does not
+    hang on the rounding of its sampled radius.
 
     Examples
     --------
@@ -217,9 +223,8 @@ def coarse_factors(radius_mm: float, spacing: Sequence[float], growth_mm: float,
     >>> coarse_factors(8.4, (0.63, 0.63, 5.0), 8.0, 0.125)
     (1, 1, 1)
     """
-    scale = min(radius_mm, 2.0 * growth_mm) if growth_mm > 0 else radius_mm
-    voxel = fraction * scale
-    return tuple(max(1, int(math.floor(voxel / s))) for s in spacing)
+    voxel = fraction * min(radius_mm, 2.0 * growth_mm)
+    return tuple(max(1, int(math.floor(voxel / s + 1e-9))) for s in spacing)
 
 
 #: The :class:`RegionParams` fields that only judge a result (its "no boundary found" test, its
@@ -228,6 +233,12 @@ def coarse_factors(radius_mm: float, spacing: Sequence[float], growth_mm: float,
 #: one of them was added or changed still restarts unchanged.
 JUDGING_FIELDS = frozenset({"min_separation", "step_depth_mm", "step_spreads",
                             "min_class_separation", "min_click_depth"})
+
+#: The :class:`RegionParams` fields that only shape a sphere's growth passes (stage 1), which a
+#: run from a saved surface never runs: a restart record does not depend on them either, so a
+#: result saved before ``coarse_fraction`` was added, or with other bands, still restarts
+#: unchanged (its record holds everything its last stage's energy needs).
+PASS_FIELDS = frozenset({"growth_mm", "growth_stop", "coarse_fraction"})
 
 #: Fewest voxels the click's intensity model is estimated from (a sphere around the click's
 #: centre grows until it holds them): below ~20 samples the MAD is not a spread.

@@ -180,6 +180,9 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         coarse = any(f > 1 for f in factors)
         on, win, grid_s = run, window, image_s
         if coarse:
+            # (voxel i of the coarse grid is the image's voxel f i; the image's last f - 1
+            # voxels along an axis may lie beyond the coarse grid's last, and count as beyond
+            # the field of view for the passes: the rounds read them again)
             grid_s = image_s[tuple(slice(None, None, f) for f in factors)]
             on = run.on_grid(tuple(s * f for s, f in zip(sp, factors)), grid_s.shape)
             win = Window.around(model, grid_s.shape, on.sp, p.window_mm)
@@ -426,10 +429,10 @@ def polish(run, model: SplineSurface) -> SplineSurface:
 def _smallest_radius(model: SplineSurface) -> float:
     """A sphere's smallest distance (mm) from the middle of its poles to its surface,
     sampled 4 times per knot interval (an ellipsoid's smallest semi-axis)."""
-    u = np.arange(4 * model.m1) / (4 * model.m1)
-    v = np.linspace(0.0, 1.0, 4 * model.m2 + 1)
+    from segsnake.window import surface_samples
+
     centre = 0.5 * (model.pole("cN") + model.pole("cS"))
-    return float(np.linalg.norm(model.positions(u, v) - centre, axis=-1).min())
+    return float(np.linalg.norm(surface_samples(model) - centre, axis=-1).min())
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:

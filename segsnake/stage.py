@@ -71,15 +71,18 @@ class Run:
     def on_grid(self, spacing: Sequence[float], shape: Sequence[int]) -> "Run":
         """The same segmentation's stages on another grid of the same space (voxel size
         ``spacing`` mm, array ``shape``): they go into this run's history and timings;
-        :meth:`take_counts` takes their iterations and last stage back."""
+        :meth:`take_counts` adds their iterations to this run's and takes their last stage."""
         other = copy.copy(self)
         other.sp = tuple(spacing)
         other.bounds = (np.asarray(shape) - 1) * np.asarray(spacing)
+        other.iterations, other.lookup = 0, None
         return other
 
     def take_counts(self, other: "Run") -> None:
-        """The iterations and last stage of a run :meth:`on_grid` made from this one."""
-        self.iterations, self.last = other.iterations, other.last
+        """The iterations and last stage of a run :meth:`on_grid` made from this one (its last
+        stage's energy is on the other grid's lookup, which this run does not keep)."""
+        self.iterations += other.iterations
+        self.last = other.last
 
     def _stage(self, name, model, lookup, band, feature_mm, tol=None, node_spacing=None,
                weight=-1.0, region=False, stationary=False, resume=None, leaves=None, used=0,

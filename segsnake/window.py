@@ -21,15 +21,20 @@ from numpy.typing import NDArray
 
 from segsnake.surfaces import SplineSurface
 
-__all__ = ["Window", "surface_box"]
+__all__ = ["Window", "surface_box", "surface_samples"]
+
+
+def surface_samples(model: SplineSurface, per_interval: int = 4) -> NDArray:
+    """The surface sampled ``per_interval`` times per knot interval in u and v (ends and poles
+    included), ``(n, 3)`` mm."""
+    u = np.arange(per_interval * model.m1) / (per_interval * model.m1)
+    v = np.linspace(0.0, 1.0, per_interval * model.m2 + 1)
+    return model.positions(u, v).reshape(-1, 3)
 
 
 def surface_box(model: SplineSurface, per_interval: int = 4) -> tuple[NDArray, NDArray]:
-    """Lower and upper corners (mm) of the surface sampled ``per_interval`` times per knot
-    interval in u and v (ends and poles included)."""
-    u = np.arange(per_interval * model.m1) / (per_interval * model.m1)
-    v = np.linspace(0.0, 1.0, per_interval * model.m2 + 1)
-    pts = model.positions(u, v).reshape(-1, 3)  # (every iteration of a region stage)
+    """Lower and upper corners (mm) of :func:`surface_samples`."""
+    pts = surface_samples(model, per_interval)  # (every iteration of a region stage)
     return pts.min(axis=0), pts.max(axis=0)
 
 

@@ -342,7 +342,8 @@ def test_coarse_factors_keep_the_coarse_voxel_within_a_fraction_of_the_start_and
     assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.1875) == (3, 3, 3)
     assert coarse_factors(40.0, (0.5, 1.0, 2.5), 8.0, 0.125) == (4, 2, 1)  # the band decides
     assert coarse_factors(15.0, (1.0, 1.0, 1.0), 8.0, 0.125) == (1, 1, 1)  # the start decides
-    assert coarse_factors(40.0, (1.0, 1.0, 1.0), 0.0, 0.125) == (5, 5, 5)  # one pass: r alone
+    # a start of exactly the bound's size, whose sampled radius rounds just below it
+    assert coarse_factors(16.0 - 1e-14, (1.0, 1.0, 1.0), 8.0, 0.125) == (2, 2, 2)
     assert coarse_factors(23.0, (1.0, 1.0, 1.0), 8.0, 0.0) == (1, 1, 1)
 
 

@@ -274,16 +274,20 @@ def test_a_record_does_not_depend_on_the_thresholds_that_only_judge_a_result(bal
                                                                             capsys):
     """A result saved by an older segsnake, whose record's region parameters hold the fields
     that only judge a result (``segsnake.region.JUDGING_FIELDS``; the record of session 20 had
-    four of them, with other values here, and not ``min_click_depth``), restarts unchanged; one
-    whose record differs in a field that enters the energy does not use it."""
+    four of them, with other values here, and not ``min_click_depth``) and those that only shape
+    the growth passes (``PASS_FIELDS``: session 21's had ``growth_mm`` and ``growth_stop``, not
+    ``coarse_fraction``), restarts unchanged; one whose record differs in a field that enters
+    the last stage's energy does not use it."""
     _, image, seg = ball
     saved = json.loads((seg / "snake.json").read_text())
     params = saved["settings"]["restart"]["region_params"]
-    assert not {"min_separation", "min_class_separation", "min_click_depth"} & set(params)
+    assert not {"min_separation", "min_class_separation", "min_click_depth", "growth_mm",
+                "coarse_fraction"} & set(params)
     for name, change, used in (
             ("older", {"min_separation": 1.5, "step_depth_mm": 3.0, "step_spreads": 2.0,
-                       "min_class_separation": 0.5}, True),
-            ("growth", {"growth_mm": params["growth_mm"] + 1.0}, False)):
+                       "min_class_separation": 0.5, "growth_mm": 6.0, "growth_stop": 0.01},
+             True),
+            ("outside", {"outside_smooth_mm": params["outside_smooth_mm"] + 1.0}, False)):
         doc = json.loads(json.dumps(saved))
         doc["settings"]["restart"]["region_params"].update(change)
         start = tmp_path / f"{name}.json"
