@@ -297,9 +297,8 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
     mask = win.embed(inside)
     # (how deep the start's centre, the click, lies in the result: not for a saved surface)
-    depth = rg.click_depth(inside, sp, 0.5 * (init.pole("cN") + init.pole("cS"))
-                           - win.origin_mm) if init.kind == "sphere" and not on_boundary \
-        else None
+    depth = rg.click_depth(inside, sp, _centre(init) - win.origin_mm) \
+        if init.kind == "sphere" and not on_boundary else None
     del inside, shell
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
@@ -426,13 +425,17 @@ def polish(run, model: SplineSurface) -> SplineSurface:
                       used=last["iterations"])
 
 
+def _centre(model: SplineSurface) -> NDArray:
+    """A sphere's centre (mm): the middle of its poles (of a start about a click, the click)."""
+    return 0.5 * (model.pole("cN") + model.pole("cS"))
+
+
 def _smallest_radius(model: SplineSurface) -> float:
-    """A sphere's smallest distance (mm) from the middle of its poles to its surface,
-    sampled 4 times per knot interval (an ellipsoid's smallest semi-axis)."""
+    """A sphere's smallest distance (mm) from its :func:`_centre` to its surface, sampled 4
+    times per knot interval (an ellipsoid's smallest semi-axis)."""
     from segsnake.window import surface_samples
 
-    centre = 0.5 * (model.pole("cN") + model.pole("cS"))
-    return float(np.linalg.norm(surface_samples(model) - centre, axis=-1).min())
+    return float(np.linalg.norm(surface_samples(model) - _centre(model), axis=-1).min())
 
 
 def _click_core(model: SplineSurface, shape, spacing, fraction: float) -> NDArray[np.bool_]:
