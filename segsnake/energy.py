@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from segsnake.surfaces import SplineSurface
 
 __all__ = ["Sampler", "Energy", "FluxTerm", "AxialTension", "SumEnergy", "flux_integrand_grads",
-           "cap_nodes", "RingBarrier", "CrossingPenalty"]
+           "flux_value", "cap_nodes", "RingBarrier", "CrossingPenalty"]
 
 
 class Sampler(Protocol):
@@ -43,6 +43,15 @@ class Energy(Protocol):
         """Energy and its gradient with respect to the model's free parameters ``(P, 3)``."""
 
 
+def flux_value(G: NDArray, su: NDArray, sv: NDArray, weights: NDArray,
+               orientation: int) -> tuple[float, NDArray]:
+    """Discrete flux ``sum W G n_x`` and ``n_x = orientation * (y_v z_u - z_v y_u)`` (arrays on
+    the quadrature grid ``(nu, nv[, 3])``): the value :func:`flux_integrand_grads` returns, to
+    the last bit."""
+    nx = float(orientation) * (sv[..., 1] * su[..., 2] - sv[..., 2] * su[..., 1])
+    return float(np.sum(weights * G * nx)), nx
+
+
 def flux_integrand_grads(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weights: NDArray,
                          orientation: int) -> tuple[float, NDArray, NDArray, NDArray]:
     """Discrete flux ``sum W G n_x`` and its derivatives with respect to sigma, sigma_u, sigma_v.
@@ -51,8 +60,7 @@ def flux_integrand_grads(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weig
     ``(nu, nv[, 3])``.
     """
     o = float(orientation)
-    nx = o * (sv[..., 1] * su[..., 2] - sv[..., 2] * su[..., 1])
-    value = float(np.sum(weights * G * nx))
+    value, nx = flux_value(G, su, sv, weights, orientation)
     wG = weights * G * o
     g_sigma = (weights * nx)[..., None] * dG
     g_u = np.stack([np.zeros_like(wG), -wG * sv[..., 2], wG * sv[..., 1]], axis=-1)
@@ -112,6 +120,17 @@ class FluxTerm:
         grad = self.model.grid_gradient_to_params(grad_C)
         return self.weight * value, self.weight * grad
 
+    def value(self, params: NDArray) -> float:
+        """``value_and_grad(params)[0]``, the same number, without the gradient's products (a
+        quadrature check needs the energy only)."""
+        C = self.model.control_points(params)
+        s, su, sv = self.basis.evaluate(C)
+        G = self.sampler.sample(s.reshape(-1, 3))[0].reshape(s.shape[:2])
+        value = flux_value(G, su, sv, self.weights, self.model.orientation)[0]
+        if self.caps is not None:
+            value += self.caps.flux(C, self.sampler)
+        return self.weight * value
+
 
 def cap_nodes(m1: int, order_u: int) -> int:
     """Gauss-Legendre nodes across a cylinder's end cap (from the ring's mean point to the ring):
@@ -142,8 +161,9 @@ class _Caps:
         self.weights = wu[:, None] * ws[None, :]
         self.signs = (model.orientation, -model.orientation)
 
-    def flux(self, C: NDArray, sampler: Sampler, grad_C: NDArray) -> float:
-        """Both caps' flux ``sum W G n_x``; adds its gradient to ``grad_C (M1, L, 3)``."""
+    def flux(self, C: NDArray, sampler: Sampler, grad_C: NDArray | None = None) -> float:
+        """Both caps' flux ``sum W G n_x``; adds its gradient to ``grad_C (M1, L, 3)`` when
+        given."""
         s = self.s[None, :, None]
         total = 0.0
         for psi, sign in zip(self.psi, self.signs):
@@ -155,6 +175,10 @@ class _Caps:
             tau_u = s * ring_u[:, None, :]
             tau_s = np.broadcast_to(radial[:, None, :], tau.shape)
             G, dG = sampler.sample(tau.reshape(-1, 3))
+            if grad_C is None:
+                total += flux_value(G.reshape(tau.shape[:2]), tau_u, tau_s, self.weights,
+                                    sign)[0]
+                continue
             value, g, g_u, g_s = flux_integrand_grads(G.reshape(tau.shape[:2]),
                                                       dG.reshape(tau.shape), tau_u, tau_s,
                                                       self.weights, sign)

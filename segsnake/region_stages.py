@@ -358,7 +358,7 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
 
     def image_energy(m: SplineSurface, order: int) -> float:
         flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
-        return flux.value_and_grad(m.params)[0]
+        return flux.value(m.params)
 
     def refines(finer: SplineSurface, coarser_volume: float) -> tuple[bool, float]:
         change = (finer.volume(order=4) - coarser_volume) / max(coarser_volume, 1e-300)

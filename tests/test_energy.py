@@ -168,6 +168,19 @@ def test_closed_cylinder_flux_is_the_capped_volume_in_any_orientation(seed):
         rev.params)[0] == pytest.approx(-volume, rel=1e-9)
 
 
+@pytest.mark.parametrize("model", [
+    SphereModel.ellipsoid([1.0, 0.5, 1.5], [2.0, 3.0, 2.5], m1=7, m2=6),
+    CylinderModel.from_axis([0.3, 0.2, -0.4], [2.0, 1.5, 3.0], 1.2, m1=6, m2=3)])
+def test_value_alone_is_the_value_of_value_and_grad_to_the_last_bit(model):
+    # (the quadrature check compares energies only: the same numbers, without the gradient)
+    model = _perturbed(model, 3, 0.2)
+    sampler = AnalyticSampler("blob", center=(1.0, 0.8, 1.0), s=1.5)
+    for order in (4, (7, 5)):
+        term = FluxTerm(model, sampler, weight=-0.7, order=order, closed=True)
+        assert term.value(model.params) == term.value_and_grad(model.params)[0]
+        assert term.value(model.params) != 0.0
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_closed_cylinder_gradient_matches_central_differences(seed):
     model = _perturbed(CylinderModel.from_axis([0.3, 0.2, -0.4], [2.0, 1.5, 3.0], 1.2, m1=6,
