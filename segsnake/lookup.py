@@ -315,9 +315,9 @@ class Lookup:
         p = np.ascontiguousarray(p.reshape(-1, 3))
         g = np.empty(len(p))
         grad = np.empty((len(p), 3))
-        # The kernel releases the GIL: equal blocks of points run in parallel threads; one
-        # block runs in this thread (a hand-off to the pool costs about what the kernel takes
-        # for a thousand points: docs/benchmarks.md, session 22).
+        # The kernel releases the GIL: equal blocks of points run in parallel threads, this one
+        # among them (a block takes well under a millisecond; a pool thread that has slept
+        # since the last call wakes late: docs/benchmarks.md, sessions 22 and 23).
 
         def block(sl: slice) -> None:
             _sampling.sample(self._flat, self._pshape, self.shape, self.spacing, p[sl],
@@ -328,7 +328,7 @@ class Lookup:
             cancel.check()
             block(blocks[0])
         else:
-            thread_map(block, blocks)
+            thread_map(block, blocks, join=True)
         if single:
             return g[0], grad[0]
         return g, grad

@@ -12,6 +12,7 @@ divides the CPUs between its worker processes.
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -68,7 +69,7 @@ def set_threads(n: int | None) -> None:
     _requested = n
 
 
-def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
+def thread_map(fn: Callable[[T], R], items: Iterable[T], *, join: bool = False) -> list[R]:
     """``[fn(x) for x in items]``, in up to :func:`threads` threads, in order.
 
     Cancellation (:mod:`segsnake.cancel`) is checked before each item, so a Ctrl-C or SIGTERM
@@ -77,6 +78,12 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
     signal then reaches it at once even while a piece is inside a long C call. Called from a pool
     thread (nested calls would wait on their own pool) or another thread, with one thread or one
     item, it runs in the calling thread.
+
+    ``join``: for short pieces (a signal waits for the one running), the calling thread takes
+    items too, with ``threads() - 1`` pool threads beside it. A pool thread idle since the last
+    call takes a while to wake (measured on this 2-core VM: lookup sampling of 62 000 points,
+    40 ns a point called back to back, 110 ns after 5 ms of other work in between, its
+    single-thread speed; docs/benchmarks.md, session 23): the caller starts at once.
     """
     items = list(items)
     n = threads()
@@ -90,6 +97,8 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
         return out
     if not items:
         return []
+    if join and n > 1 and len(items) > 1:
+        return _joined_map(fn, items, min(n, len(items)) - 1)
 
     def run(x: T) -> R:
         cancel.check()
@@ -101,6 +110,36 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
     finally:
         for f in futures:  # after an error or an interrupt: the pieces not started never start
             f.cancel()
+
+
+def _joined_map(fn: Callable[[T], R], items: list[T], helpers: int) -> list[R]:
+    # The caller and ``helpers`` pool threads take the items in order from one counter
+    # (itertools.count's next() is atomic under the GIL); each result lands in its own slot.
+    out: list = [None] * len(items)
+    counter = itertools.count()
+    failed: list[bool] = []  # (after an error anywhere the others take no new item)
+
+    def drain() -> None:
+        for i in iter(counter.__next__, None):
+            if i >= len(items) or failed:
+                return
+            try:
+                cancel.check()
+                out[i] = fn(items[i])
+            except BaseException:
+                failed.append(True)
+                raise
+
+    pool = _executor(threads())
+    futures = [pool.submit(drain) for _ in range(helpers)]
+    try:
+        drain()
+        for f in futures:
+            f.result()
+    finally:
+        for f in futures:  # after an error or an interrupt: a helper not started never starts
+            f.cancel()
+    return out
 
 
 def _forget_pool() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -90,6 +91,37 @@ def test_slab_filters_equal_scipy(two_threads):
     expected = ndimage.spline_filter1d(flat.astype(np.float64), order=3, axis=0, mode="mirror")
     expected = ndimage.spline_filter1d(expected, order=3, axis=2, mode="mirror")
     assert np.array_equal(parallel.spline_filter(flat), expected)
+
+
+def test_a_joined_map_keeps_order_runs_in_the_caller_too_and_stops_at_an_error(two_threads):
+    # (join: the caller takes items beside threads() - 1 pool threads)
+    def slow(i):
+        time.sleep(0.002)  # (long enough for both threads to take items)
+        return i * i, threading.current_thread().name
+
+    out = parallel.thread_map(slow, range(20), join=True)
+    assert [v for v, _ in out] == [i * i for i in range(20)]
+    names = {n for _, n in out}
+    assert threading.main_thread().name in names
+    assert names - {threading.main_thread().name} and all(
+        n.startswith("segsnake-worker") for n in names - {threading.main_thread().name})
+    taken = []
+
+    def fails(i):
+        taken.append(i)
+        if i == 3:
+            raise ValueError("piece 3")
+        time.sleep(0.002)
+        return i
+
+    with pytest.raises(ValueError, match="piece 3"):
+        parallel.thread_map(fails, range(50), join=True)
+    time.sleep(0.05)  # (a piece a helper had begun ends; no new one is taken)
+    assert len(taken) < 10
+    # one thread: no helper, the pool as before
+    parallel.set_threads(1)
+    assert {n for _, n in parallel.thread_map(slow, range(3), join=True)} == {
+        n for _, n in parallel.thread_map(slow, range(3))}
 
 
 def test_lookup_and_derivatives_do_not_depend_on_threads():
