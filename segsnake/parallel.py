@@ -80,10 +80,11 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], *, join: bool = False) 
     item, it runs in the calling thread.
 
     ``join``: for short pieces (a signal waits for the one running), the calling thread takes
-    items too, with ``threads() - 1`` pool threads beside it. A pool thread idle since the last
-    call takes a while to wake (measured on this 2-core VM: lookup sampling of 62 000 points,
-    40 ns a point called back to back, 110 ns after 5 ms of other work in between, its
-    single-thread speed; docs/benchmarks.md, session 23): the caller starts at once.
+    items too, with ``threads() - 1`` pool threads beside it: it starts at once, while a pool
+    thread idle since the last call wakes late (measured on a 2-core VM, lookup sampling of
+    62 000 points: 41 ns a point in the pool called back to back, 55-62 ns after 5-10 ms of
+    other work in between; with the caller taking blocks 36 and 46-56 ns; docs/benchmarks.md,
+    session 23).
     """
     items = list(items)
     n = threads()
