@@ -3,7 +3,9 @@
 Session 4 found results that hung on the last bits of the gradient (a ball phantom at Dice 0.998
 or 0.910 as rounding of 1e-13 in the basis products went). This script makes that a measurement:
 every case runs with the exact energy and, with ``--perturb EPS``, again with every flux gradient
-multiplied by ``1 + EPS * noise`` (seeded), and reports both and their difference, in the
+multiplied by ``1 + EPS * noise`` (seeded; ``--perturb-seed`` takes several seeds, one draw of
+the noise each, and the table shows the draw that moved the case's Dice most: one draw
+understates how far a case can move), and reports both and their difference, in the
 suite's score and in Dice (issue 15's goal: no Dice moved by more than 0.002; the tubes and
 Table 7.2 score Jaccard, the thesis' measure, whose differences are about twice Dice's there).
 
@@ -24,7 +26,7 @@ Usage::
     .venv/bin/python benchmarks/bench_robustness.py --suites tubes table72 --perturb 1e-12
     .venv/bin/python benchmarks/bench_robustness.py --seeds 4 5 6 7 --json out.json
     .venv/bin/python benchmarks/bench_robustness.py --suites tubes --tube-seed 8 --perturb 1e-12
-    .venv/bin/python benchmarks/bench_robustness.py --suites tubes --perturb 1e-12 --perturb-seed 1
+    .venv/bin/python benchmarks/bench_robustness.py --suites tubes --perturb 1e-12 --perturb-seed 0 1 2
 
 Spheres take about 30 s per 4 seeds, tubes about 30 s, table72 about 10 s (2 cores), twice that
 with ``--perturb``.
@@ -178,8 +180,12 @@ def markdown(info: dict) -> str:
         if eps:
             ok_p = sum(r["perturbed"]["score"] >= r["goal"] for r in rows)
             worst = max(abs(r["perturbed"]["score"] - r["exact"]["score"]) for r in rows)
-            summary += (f"; perturbed by {eps:g}: {ok_p} of {len(rows)}, largest difference "
-                        f"{worst:.4f}")
+            seeds = info.get("perturb_seed", 0)
+            seeds = seeds if isinstance(seeds, list) else [seeds]
+            draws = (f" (each case's worst of {len(seeds)} draws, seeds "
+                     f"{', '.join(map(str, seeds))})" if len(seeds) > 1 else "")
+            summary += (f"; perturbed by {eps:g}{draws}: {ok_p} of {len(rows)}, largest "
+                        f"difference {worst:.4f}")
             if in_dice:
                 summary += f" ({max(map(_dice_difference, rows)):.4f} in Dice)"
         lines += ["", summary + ".", ""]
@@ -196,8 +202,9 @@ def main(argv: list[str] | None = None) -> int:
                          "held-out tubes)")
     ap.add_argument("--perturb", type=float, default=0.0,
                     help="also run with gradients times 1 + EPS * noise (e.g. 1e-12)")
-    ap.add_argument("--perturb-seed", type=int, default=0,
-                    help="seed of the perturbation's noise (default 0)")
+    ap.add_argument("--perturb-seed", type=int, nargs="+", default=[0], metavar="SEED",
+                    help="seeds of the perturbation's noise, one perturbed run each; the table "
+                         "shows the draw that moved the Dice most (default 0)")
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers here")
     args = ap.parse_args(argv)
 
@@ -210,8 +217,14 @@ def main(argv: list[str] | None = None) -> int:
             row = {"name": case["name"], "goal": case["goal"], "score_name": case["score"],
                    "exact": run_case(case)}
             if args.perturb:
-                with perturbed_gradients(args.perturb, args.perturb_seed):
-                    row["perturbed"] = run_case(case)
+                draws = []
+                for seed in args.perturb_seed:
+                    with perturbed_gradients(args.perturb, seed):
+                        draws.append({"seed": seed, **run_case(case)})
+                row["perturbed_draws"] = draws
+                # (the table's perturbed run: the draw that moved the Dice most)
+                row["perturbed"] = max(draws, key=lambda d: _dice_difference(
+                    {**row, "perturbed": d}))
             print(f"[bench_robustness] {case['name']}: {row['exact']['score']:.4f}"
                   + (f" / {row['perturbed']['score']:.4f}" if args.perturb else ""),
                   file=sys.stderr, flush=True)
