@@ -12,10 +12,9 @@ divides the CPUs between its worker processes.
 
 from __future__ import annotations
 
-import itertools
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Callable, Iterable, Sequence, TypeVar
 
 import numpy as np
@@ -99,7 +98,7 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], *, join: bool = False) 
     if not items:
         return []
     if join and n > 1 and len(items) > 1:
-        return _joined_map(fn, items, min(n, len(items)) - 1)
+        return _joined_map(fn, items, n, min(n, len(items)) - 1)
 
     def run(x: T) -> R:
         cancel.check()
@@ -113,33 +112,41 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], *, join: bool = False) 
             f.cancel()
 
 
-def _joined_map(fn: Callable[[T], R], items: list[T], helpers: int) -> list[R]:
-    # The caller and ``helpers`` pool threads take the items in order from one counter
-    # (itertools.count's next() is atomic under the GIL); each result lands in its own slot.
+def _joined_map(fn: Callable[[T], R], items: list[T], n: int, helpers: int) -> list[R]:
+    # The caller and ``helpers`` threads of the pool of ``n`` take the items in order, one index
+    # at a time; each result lands in its own slot.
     out: list = [None] * len(items)
-    counter = itertools.count()
+    lock = threading.Lock()
+    taken = [0]
     failed: list[bool] = []  # (after an error anywhere the others take no new item)
 
     def drain() -> None:
-        for i in iter(counter.__next__, None):
-            if i >= len(items) or failed:
-                return
-            try:
+        try:
+            while not failed:
+                with lock:
+                    i = taken[0]
+                    taken[0] += 1
+                if i >= len(items):
+                    return
                 cancel.check()
                 out[i] = fn(items[i])
-            except BaseException:
-                failed.append(True)
-                raise
+        except BaseException:
+            failed.append(True)
+            raise
 
-    pool = _executor(threads())
-    futures = [pool.submit(drain) for _ in range(helpers)]
+    futures = [_executor(n).submit(drain) for _ in range(helpers)]
     try:
         drain()
-        for f in futures:
-            f.result()
     finally:
-        for f in futures:  # after an error or an interrupt: a helper not started never starts
+        # A helper that has not started by now finds nothing left: it is not waited for (its
+        # thread may still be waking). One that has started is, and its error is raised.
+        for f in futures:
             f.cancel()
+        started = [f for f in futures if not f.cancelled()]
+        if started:
+            wait(started)
+    for f in started:
+        f.result()
     return out
 
 

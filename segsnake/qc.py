@@ -267,8 +267,8 @@ def qc_figure(image: np.ndarray, spacing, mask: np.ndarray, model, init_model=No
         slice_panel(ax, image, sp, axis, int(centre[axis]), contours, levels=(lo, hi),
                     affine=affine, point=point)
     ax3 = fig.add_subplot(1, panels, 4, projection="3d")
-    # 4 vertices per control interval up to 36 along a direction, then 2 (a thumbnail: with a
-    # 21 x 21 brain's 84 x 84 mesh the figure took 0.33 s, with 42 x 42 0.09 s)
+    # max(2 m, min(4 m, 36)) samples along each direction for m control intervals (a thumbnail:
+    # with a 21 x 21 brain's 84 x 84 the figure took 0.33 s, with 42 x 42 0.09 s)
     pts, faces = model.triangles(*(max(2 * m, min(4 * m, 36)) for m in (model.m1, model.m2)))
     pts = np.asarray(pts, dtype=np.float64)
     if affine is not None:  # the same world millimetres as the slices and surface.vtp

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from segsnake import parallel
+from segsnake import cancel, parallel
 from segsnake.errors import ConfigError
 from segsnake.features import gaussian_derivatives
 from segsnake.lookup import Lookup
@@ -95,33 +95,61 @@ def test_slab_filters_equal_scipy(two_threads):
 
 def test_a_joined_map_keeps_order_runs_in_the_caller_too_and_stops_at_an_error(two_threads):
     # (join: the caller takes items beside threads() - 1 pool threads)
-    def slow(i):
-        time.sleep(0.002)  # (long enough for both threads to take items)
+    main = threading.main_thread()
+    helper_took = threading.Event()
+
+    def square(i):
+        if threading.current_thread() is main:
+            assert helper_took.wait(10)  # (so that both take items, whatever the timing)
+        else:
+            helper_took.set()
         return i * i, threading.current_thread().name
 
-    out = parallel.thread_map(slow, range(20), join=True)
+    out = parallel.thread_map(square, range(20), join=True)
     assert [v for v, _ in out] == [i * i for i in range(20)]
     names = {n for _, n in out}
-    assert threading.main_thread().name in names
-    assert names - {threading.main_thread().name} and all(
-        n.startswith("segsnake-worker") for n in names - {threading.main_thread().name})
+    assert main.name in names and len(names) == 2
+    assert all(n.startswith("segsnake-worker") for n in names - {main.name})
+
+    # A helper's error reaches the caller, and no one takes a new item after it.
+    helper_took.clear()
     taken = []
 
-    def fails(i):
+    def fails_in_a_helper(i):
         taken.append(i)
-        if i == 3:
-            raise ValueError("piece 3")
-        time.sleep(0.002)
+        if threading.current_thread() is main:
+            assert helper_took.wait(10)
+            time.sleep(0.01)
+            return i
+        helper_took.set()
+        raise ValueError(f"piece {i}")
+
+    with pytest.raises(ValueError, match="piece"):
+        parallel.thread_map(fails_in_a_helper, range(50), join=True)
+    assert len(taken) == 2
+
+    # A cancellation (Ctrl-C, SIGTERM) stops both at their next item.
+    taken.clear()
+
+    def cancels(i):
+        taken.append(i)
+        if i == 0:
+            cancel.request()
+        else:
+            time.sleep(0.05)  # (the request comes first: at most this one item more)
         return i
 
-    with pytest.raises(ValueError, match="piece 3"):
-        parallel.thread_map(fails, range(50), join=True)
-    time.sleep(0.05)  # (a piece a helper had begun ends; no new one is taken)
-    assert len(taken) < 10
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            parallel.thread_map(cancels, range(50), join=True)
+    finally:
+        cancel.reset()
+    assert len(taken) <= 2
+
     # one thread: no helper, the pool as before
     parallel.set_threads(1)
-    assert {n for _, n in parallel.thread_map(slow, range(3), join=True)} == {
-        n for _, n in parallel.thread_map(slow, range(3))}
+    assert {n for _, n in parallel.thread_map(square, range(3), join=True)} == {
+        n for _, n in parallel.thread_map(square, range(3))}
 
 
 def test_lookup_and_derivatives_do_not_depend_on_threads():
