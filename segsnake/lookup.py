@@ -61,7 +61,6 @@ except ImportError as exc:  # an install that skipped the build (no compiler), o
     raise ImportError("segsnake's compiled kernel segsnake/_sampling.c is not built: reinstall "
                       "with `pip install -e .` (or `make install`), which needs a C compiler "
                       "and the Python headers") from exc
-from segsnake import cancel
 from segsnake.parallel import pieces, slabs, spline_filter, thread_map
 
 __all__ = ["Lookup"]
@@ -323,12 +322,7 @@ class Lookup:
             _sampling.sample(self._flat, self._pshape, self.shape, self.spacing, p[sl],
                              g[sl], grad[sl])
 
-        blocks = pieces(len(p), _BLOCK)
-        if len(blocks) == 1:
-            cancel.check()
-            block(blocks[0])
-        else:
-            thread_map(block, blocks, join=True)
+        thread_map(block, pieces(len(p), _BLOCK), join=True)
         if single:
             return g[0], grad[0]
         return g, grad

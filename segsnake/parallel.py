@@ -79,7 +79,9 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], *, join: bool = False) 
     item, it runs in the calling thread.
 
     ``join``: for short pieces (a signal waits for the one running), the calling thread takes
-    items too, with ``threads() - 1`` pool threads beside it: it starts at once, while a pool
+    items too, with ``threads() - 1`` pool threads beside it (a single item it runs alone: a
+    hand-off to the pool costs about what the lookup's kernel takes for a thousand points,
+    docs/benchmarks.md session 22): it starts at once, while a pool
     thread idle since the last call wakes late (measured on a 2-core VM, lookup sampling of
     62 000 points: 41 ns a point in the pool called back to back, 55-62 ns after 5-10 ms of
     other work in between; with the caller taking blocks 36 and 46-56 ns; docs/benchmarks.md,
@@ -97,7 +99,10 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], *, join: bool = False) 
         return out
     if not items:
         return []
-    if join and n > 1 and len(items) > 1:
+    if join and len(items) == 1:
+        cancel.check()
+        return [fn(items[0])]
+    if join and n > 1:
         return _joined_map(fn, items, n, min(n, len(items)) - 1)
 
     def run(x: T) -> R:
