@@ -107,12 +107,16 @@ class FluxTerm:
         self.caps = _Caps(self.model, self.basis.u, self.weights.sum(axis=1)) \
             if self.closed and self.model.kind == "cylinder" else None
 
-    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+    def _on_nodes(self, params: NDArray) -> tuple[NDArray, ...]:
+        # The control grid, the surface and its tangents on the quadrature nodes, and G and its
+        # gradient there (nu, nv[, 3]).
         C = self.model.control_points(params)
         s, su, sv = self.basis.evaluate(C)
         G, dG = self.sampler.sample(s.reshape(-1, 3))
-        G = G.reshape(s.shape[:2])
-        dG = dG.reshape(s.shape)
+        return C, su, sv, G.reshape(s.shape[:2]), dG.reshape(s.shape)
+
+    def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
+        C, su, sv, G, dG = self._on_nodes(params)
         value, g, gu, gv = flux_integrand_grads(G, dG, su, sv, self.weights, self.model.orientation)
         grad_C = self.basis.adjoint(g, gu, gv)
         if self.caps is not None:
@@ -123,9 +127,7 @@ class FluxTerm:
     def value(self, params: NDArray) -> float:
         """``value_and_grad(params)[0]``, the same number, without the gradient's products (a
         quadrature check needs the energy only)."""
-        C = self.model.control_points(params)
-        s, su, sv = self.basis.evaluate(C)
-        G = self.sampler.sample(s.reshape(-1, 3))[0].reshape(s.shape[:2])
+        C, su, sv, G, _ = self._on_nodes(params)
         value = flux_value(G, su, sv, self.weights, self.model.orientation)[0]
         if self.caps is not None:
             value += self.caps.flux(C, self.sampler)
