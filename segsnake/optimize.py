@@ -39,8 +39,6 @@ class OptimizeResult:
     history: list[float] = field(default_factory=list)
     #: :func:`stationarity` at the end (None unless ``stationary_tol`` was given).
     stationarity: float | None = None
-    #: The L-BFGS correction pairs at the end (``s`` and ``y`` lists), for ``pairs`` of the next.
-    pairs: tuple[list, list] = field(default_factory=lambda: ([], []))
 
 
 #: A surface whose volume falls below this fraction of its start's collapsed (the end check of
@@ -60,8 +58,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
                     callback: Callable[[int, float, NDArray], bool | None] | None = None,
                     min_volume_fraction: float = MIN_VOLUME_FRACTION,
                     window: int = 5,
-                    stationary_tol: float | None = None,
-                    pairs: tuple[list, list] | None = None) -> OptimizeResult:
+                    stationary_tol: float | None = None) -> OptimizeResult:
     """Minimize ``energy`` starting from ``model`` with step-limited L-BFGS.
 
     Parameters
@@ -114,10 +111,6 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
         stationary"). For a start that is the end of *another* energy (a stage's next
         quadrature round) leave it off: the test is first-order, and such a start may pass it
         while the new energy still has more to give than the relative-change rule would leave.
-    pairs : (list, list), optional
-        L-BFGS correction pairs to start from (``OptimizeResult.pairs`` of a minimization of a
-        nearly equal energy on the same parameters, such as the same stage at a finer
-        quadrature): the curvature it learnt is not learnt again. Not modified.
     """
     if window < 1:
         raise ValueError(f"window must be at least 1, got {window}")
@@ -147,8 +140,8 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     x = model.params.copy()
     f, g = fun(x)
     history = [f]
-    s_list: list[NDArray] = [] if pairs is None else list(pairs[0])
-    y_list: list[NDArray] = [] if pairs is None else list(pairs[1])
+    s_list: list[NDArray] = []
+    y_list: list[NDArray] = []
     converged, message, it = False, f"iteration cap ({max_iter}) reached", 0
     steps: list[float] = []
     station: float | None = None
@@ -228,8 +221,7 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     _check_surface(final, v0, bounds_mm, min_volume_fraction)
     if stationary_tol is not None:
         stationary()  # (at the end, whatever stopped it)
-    return OptimizeResult(final, f, it, nfev, converged, message, history, station,
-                          (s_list, y_list))
+    return OptimizeResult(final, f, it, nfev, converged, message, history, station)
 
 
 def stationarity(model: SplineSurface, energy: float, grad: NDArray, step_mm: float,

@@ -128,29 +128,6 @@ def test_stationarity_is_the_first_order_decrease_and_a_restart_at_it_takes_no_s
     assert plain.iterations >= 5 and not np.array_equal(plain.model.params, res.model.params)
 
 
-def test_minimization_goes_on_from_given_lbfgs_pairs():
-    # A second minimization of the same energy, from where a first one stopped early, with the
-    # first's curvature pairs: it starts with that curvature (a different first step from a
-    # fresh start), ends on the same level set, and the given pairs are left as they were.
-    model = SphereModel.ellipsoid([0, 0, 0], [1.0, 1.2, 0.8], m1=6, m2=6)
-    energy = FluxTerm(model, _LevelBlob("blob", s=2.0), weight=-1.0)
-    first = minimize_energy(model, energy, max_iter=3)
-    s_list, y_list = first.pairs
-    n = len(s_list)
-    assert n == len(y_list) and n >= 2
-    kept = [a.copy() for a in s_list]
-    fresh = minimize_energy(first.model, energy, tol=1e-5, stationary_tol=1e-5)
-    warm = minimize_energy(first.model, energy, tol=1e-5, stationary_tol=1e-5, pairs=first.pairs)
-    assert warm.history[1] != fresh.history[1]
-    assert all(np.array_equal(a, b) for a, b in zip(first.pairs[0], kept))
-    assert len(first.pairs[0]) == n
-    r_star = 2.0 * np.sqrt(2 * np.log(1 / 0.3))  # the level set (as in the test above)
-    for res in (fresh, warm):
-        assert res.message.startswith("stationary")
-        sig = res.model.evaluate(np.linspace(0, 1, 9), np.linspace(0, 1, 9))[0]
-        assert np.abs(np.linalg.norm(sig, axis=-1) - r_star).max() < 0.02
-
-
 def test_axial_tension_is_the_distance_between_the_end_rings_centres():
     from segsnake.energy import AxialTension
 

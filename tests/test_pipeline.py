@@ -323,6 +323,39 @@ def test_stage_refines_an_untrustworthy_quadrature(monkeypatch):
     assert info["quadrature_resolved"] and info["quadrature_order"] == (8, 8)
 
 
+def test_running_quadrature_check_verdicts():
+    # A running check (every QUADRATURE_CHECK_EVERY iterations): off by more than the converged
+    # tolerance ends the round (failed) but trusts the shape; off by more than the running one
+    # the shape is exploited and not trusted; a settled round (a resumed functional whose order
+    # a converged check accepted) is ended only by exploitation.
+    from test_energy import AnalyticSampler
+
+    from segsnake import stage
+    from segsnake.energy import FluxTerm
+    from segsnake.surfaces import SphereModel
+
+    def verdict(s, r, settled=False):
+        model = SphereModel.ellipsoid([0.1, -0.05, 0.0], [r, 1.2 * r, 0.9 * r], m1=6, m2=6)
+        start = model.params + 0.01
+        check = stage.QuadratureCheck(FluxTerm(model, AnalyticSampler("blob", s=s),
+                                               weight=-1.0, order=(4, 4)),
+                                      (8, 8), [], start, settled=settled)
+        assert not check.during(stage.QUADRATURE_CHECK_EVERY - 1, 0.0, model.params)
+        stop = check.during(stage.QUADRATURE_CHECK_EVERY, 0.0, model.params)
+        trusted = np.array_equal(check.trusted, model.params)
+        assert np.array_equal(check.trusted, model.params if trusted else start)
+        return check.checks[-1]["relative_error"], stop, check.failed, check.exploited, trusted
+
+    error, *rest = verdict(0.2, 0.8)
+    assert stage.QUADRATURE_RTOL < error <= stage.QUADRATURE_RTOL_RUNNING
+    assert rest == [True, True, False, True]
+    assert verdict(0.2, 0.8, settled=True)[1:] == (False, False, False, True)
+    error, *rest = verdict(0.1, 1.0, settled=True)
+    assert error > stage.QUADRATURE_RTOL_RUNNING and rest == [True, True, True, False]
+    error, *rest = verdict(0.2, 0.5)
+    assert error <= stage.QUADRATURE_RTOL and rest == [False, False, False, True]
+
+
 def test_seed_point_is_a_world_position_with_world(monkeypatch):
     # With --world every position is in world mm, the seed point too (it used to be read as
     # voxel indices whatever --world said).
