@@ -40,13 +40,9 @@ NODE_SPACING = 4.0
 MAX_ORDER = 48
 #: ... refined until the image energy agrees with twice the order to this relative error.
 QUADRATURE_RTOL = 2e-3
-#: ... and while it runs, every this many iterations (see :class:`QuadratureCheck`): a round
-#: off by more than QUADRATURE_RTOL stops there and the next one goes on from its shape at the
-#: finer order (on the Colin27 brain's click every round whose running check was off by more
-#: failed its converged check too, 10 of 10: finishing it only spent iterations); off by more
-#: than QUADRATURE_RTOL_RUNNING its shape is not trusted either (the optimizer exploited the
-#: coarse rule: a moving surface crosses features that a converged one lies along, and is off
-#: by 0.2-1 % while a blob's refinement runs).
+#: ... and while it runs, every this many iterations (see :class:`QuadratureCheck`).
+#: A moving surface crosses features that a converged one lies along: the running check only
+#: catches gross under-resolution (measured: 0.2-1 % while a blob's refinement runs).
 QUADRATURE_CHECK_EVERY = 25
 QUADRATURE_RTOL_RUNNING = 2e-2
 #: The region energy's density beyond the field of view (voxels of padding, and the density
@@ -188,11 +184,8 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
     order. The check matters: an under-resolved quadrature is not just inaccurate, the optimizer
     *exploits* it (it grows a spike whose few nodes all sit on favourable values; measured: order
     4 gave -104695 where order 16 gives -92674 on a noisy ball). So every
-    ``QUADRATURE_CHECK_EVERY`` iterations the running round is checked too, and a check off by
-    more than ``QUADRATURE_RTOL`` ends it (unless it resumes a functional, whose order a
-    converged check accepted): the next round goes on at the finer order from there, or, off by
-    more than ``QUADRATURE_RTOL_RUNNING``, from the last shape it trusted
-    (:class:`QuadratureCheck`). A stage
+    ``QUADRATURE_CHECK_EVERY`` iterations the running round is checked too, with the looser
+    ``QUADRATURE_RTOL_RUNNING``, and a failure ends it (:class:`QuadratureCheck`). A stage
     stopped by the iteration cap is checked too, with the running tolerance (it is still
     moving); ``quadrature_resolved`` in its history says whether the last check agreed
     (``segment`` warns when not).
@@ -253,7 +246,7 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
         energy = stage_energy(reference, lookup, weight, order, extra_energy, region,
                                crossing_weight)
-        check = QuadratureCheck(energy.terms[0], fine, checks, model.params, settled=resumed)
+        check = QuadratureCheck(energy.terms[0], fine, checks, model.params)
         admissible = Admissible(reference, max_interval, follow=region)
         res = minimize_energy(model, energy, max_iter=max(max_iter - iterations, 1),
                               tol=tol, bounds_mm=bounds, max_step_mm=band,
@@ -269,14 +262,12 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
         if left:
             break
         if check.failed:
-            # Caught while running: on at the finer order, if iterations are left, from here
-            # or, if the coarse order was exploited, from the last shape whose energy was
-            # trusted. (Going on from the exploited shape, a tube along (1, 0.3, 1) whose first
-            # refinement round was 530 % off after 25 iterations ended at Jaccard 0.97 or 0.17,
-            # as rounding of 1e-13 in the basis products went.)
-            if check.exploited:
-                model = model.with_params(check.trusted)
-                final_energy = energy.value_and_grad(model.params)[0]
+            # Caught while running: on at the finer order, if iterations are left, from the
+            # last shape whose energy was trusted. (Going on from the exploited shape, a tube
+            # along (1, 0.3, 1) whose first refinement round was 530 % off after 25 iterations
+            # ended at Jaccard 0.97 or 0.17, as rounding of 1e-13 in the basis products went.)
+            model = model.with_params(check.trusted)
+            final_energy = energy.value_and_grad(model.params)[0]
             if capped:
                 break
             floor = np.array(fine)
@@ -319,31 +310,22 @@ class QuadratureCheck:
 
     Called at the end of a round (tolerance ``QUADRATURE_RTOL``), and every
     ``QUADRATURE_CHECK_EVERY`` iterations while it runs (:meth:`during`, the optimizer's
-    callback), which stops the round at the first check off by more than ``QUADRATURE_RTOL``
-    (``failed``): such a round would fail its converged check too, and the iterations it would
-    spend until then are lost to the finer round (measured: a hollow tube's refinement ran 275
-    iterations at an order whose running checks were off by 0.3-2 %, and the finer round then
-    ran into the stage's iteration cap: Dice 0.973 against 0.982, as a 1e-12 perturbation of
-    the gradient went). Off by more than ``QUADRATURE_RTOL_RUNNING`` (``exploited``), the shape
-    is not trusted either: an optimizer that exploits a coarse quadrature does so
-    progressively (measured: a tube along (1, 0.3, 1) ran 220 iterations into a shape whose
-    order-8 energy was off by 410 %, Jaccard 0.46; checked every 25 iterations, 0.95). Each
-    check is appended to ``checks``. ``trusted`` holds the parameters of the last running check
-    that was not exploited (the round's start before any): after a failure the stage goes on
-    from there, not from a shape the coarse rule was exploited into. ``settled``: the round
-    resumes a functional whose order a converged check accepted (a polish): only exploitation
-    ends it (measured: a perturbed brain click's polish on its 29 x 29 grid, its order accepted
-    at 0.0014, ran at 0.0020 and 0.0021; ended there, its round at twice the order took 212
-    iterations and 39 s where it had taken 71 and 6.5 s).
+    callback, tolerance ``QUADRATURE_RTOL_RUNNING``, which stops the round at the first
+    disagreement): an optimizer that exploits a coarse quadrature does so progressively, and
+    caught late the finer round starts far from the boundary with few iterations left
+    (measured: a tube along (1, 0.3, 1) ran 220 iterations into a shape whose order-8 energy
+    was off by 410 %, Jaccard 0.46; checked every 25 iterations, 0.95). Each check is appended
+    to ``checks``. ``trusted`` holds the parameters of the last running check that agreed (the
+    round's start before any): after a failure the stage goes on from there, not from the shape
+    the coarse rule was exploited into.
     """
 
     def __init__(self, coarse: FluxTerm, fine: tuple[int, int], checks: list,
-                 start: NDArray, settled: bool = False) -> None:
+                 start: NDArray) -> None:
         self.coarse, self.fine, self.checks = coarse, fine, checks
-        self.settled = settled
         self.order = coarse.order
         self._fine_term: FluxTerm | None = None  # built on the first check (its basis costs)
-        self.failed = self.exploited = False
+        self.failed = False
         self.trusted = start.copy()
 
     def __call__(self, params: NDArray, when: str = "converged") -> bool:
@@ -360,10 +342,8 @@ class QuadratureCheck:
     def during(self, iteration: int, energy: float, params: NDArray) -> bool:
         if self.fine == self.order or iteration % QUADRATURE_CHECK_EVERY:
             return False
-        self.exploited = not self(params, "running")
-        self.failed = self.exploited or \
-            (not self.settled and self.checks[-1]["relative_error"] > QUADRATURE_RTOL)
-        if not self.exploited:
+        self.failed = not self(params, "running")
+        if not self.failed:
             self.trusted = params.copy()
         return self.failed
 
