@@ -57,6 +57,17 @@ INNER_CAPTURE_NODE_SPACING = 2.0
 #: term is flat and its tension shortened the tube instead (docs/benchmarks.md, session 15: the
 #: sweep, which is not flat, and held-out tubes).
 CAPTURE_CONTINUATION = 0.5
+#: A-priori quadrature of the refinement: nodes this many feature widths apart. Its integrand
+#: lives within about a ridge width of the ridge, which the surface starts within reach of;
+#: at the stages' four widths (``stage.NODE_SPACING``) its rounds were accepted at 2-4 times
+#: the a-priori order (Table 7.2: 8 x 9 -> 32 x 36 at std 50, 11 x 12 -> 22 x 24 at std 0; the
+#: random tubes: 6 x 7 -> 12 x 14 or 18 x 18, 7 x 16 -> 28 x 48), and a round at the coarse
+#: order could spend the stage's iterations before a check caught it (a short tube, 275 of
+#: 300: Jaccard 0.9472 against 0.9654 as a 1e-12 perturbation went). Swept (docs/benchmarks.md,
+#: session 24), the tubes' largest Dice difference under 1e-12 perturbations (the suite's
+#: tubes / held-out tubes) and Table 7.2's: 4: 0.0095 / 0.0090, 0.0007; 2: 0.0030 / 0.0051,
+#: 0.0000; 1: 0.0059 / 0.0058, 0.0001. The price: the brain sweep's cases 0.5-1 s slower.
+REFINE_NODE_SPACING = 2.0
 
 
 def _center_and_axis(model: SplineSurface) -> tuple[NDArray, NDArray | None]:
@@ -335,7 +346,8 @@ class EdgeRun(Run):
         del along
         self.timings["lookup_s"] += time.perf_counter() - t0
         return self._stage("refine", model, lookup, em.smooth_mm, feature_mm, tol=tol,
-                           stationary=stationary, resume=resume)
+                           node_spacing=REFINE_NODE_SPACING, stationary=stationary,
+                           resume=resume)
 
 
 def edge_support(model: SplineSurface, f: NDArray, spacing: Sequence[float]) -> float:
