@@ -134,16 +134,19 @@ def run_case(case: dict) -> dict:
             "seconds": time.perf_counter() - t0, "warnings": result_warnings(res)}
 
 
-def _dice_difference(row: dict) -> float:
-    """How far the perturbation moved the case's Dice (from its score where a run of an older
-    ``--json`` recorded no Dice: Dice = 2 J / (1 + J) of the same two masks)."""
-    def d(run: dict) -> float:
-        if "dice" in run:
-            return run["dice"]
-        j = run["score"]
-        return j if row["score_name"] == "dice" else 2 * j / (1 + j)
+def _dice(run: dict, score_name: str) -> float:
+    """A run's Dice (from its score where a run of an older ``--json`` recorded no Dice:
+    Dice = 2 J / (1 + J) of the same two masks)."""
+    if "dice" in run:
+        return run["dice"]
+    j = run["score"]
+    return j if score_name == "dice" else 2 * j / (1 + j)
 
-    return abs(d(row["perturbed"]) - d(row["exact"]))
+
+def _dice_difference(row: dict, perturbed: dict | None = None) -> float:
+    """How far the perturbation (``perturbed``, default the row's) moved the case's Dice."""
+    run = row["perturbed"] if perturbed is None else perturbed
+    return abs(_dice(run, row["score_name"]) - _dice(row["exact"], row["score_name"]))
 
 
 def markdown(info: dict) -> str:
@@ -223,8 +226,7 @@ def main(argv: list[str] | None = None) -> int:
                         draws.append({"seed": seed, **run_case(case)})
                 row["perturbed_draws"] = draws
                 # (the table's perturbed run: the draw that moved the Dice most)
-                row["perturbed"] = max(draws, key=lambda d: _dice_difference(
-                    {**row, "perturbed": d}))
+                row["perturbed"] = max(draws, key=lambda d: _dice_difference(row, d))
             print(f"[bench_robustness] {case['name']}: {row['exact']['score']:.4f}"
                   + (f" / {row['perturbed']['score']:.4f}" if args.perturb else ""),
                   file=sys.stderr, flush=True)

@@ -122,21 +122,21 @@ def _joined_map(fn: Callable[[T], R], items: list[T], n: int, helpers: int) -> l
     # at a time; each result lands in its own slot.
     out: list = [None] * len(items)
     lock = threading.Lock()
-    taken = [0]
-    failed: list[bool] = []  # (after an error anywhere the others take no new item)
+    taken = 0
+    failed = threading.Event()  # (after an error anywhere the others take no new item)
 
     def drain() -> None:
+        nonlocal taken
         try:
-            while not failed:
+            while not failed.is_set():
                 with lock:
-                    i = taken[0]
-                    taken[0] += 1
+                    i, taken = taken, taken + 1
                 if i >= len(items):
                     return
                 cancel.check()
                 out[i] = fn(items[i])
         except BaseException:
-            failed.append(True)
+            failed.set()
             raise
 
     futures = [_executor(n).submit(drain) for _ in range(helpers)]
