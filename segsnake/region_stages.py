@@ -210,13 +210,12 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     report("region", 0.1)
     if not on_boundary:
         model, window = grow(model, window)
-        if model.kind == "cylinder" and config.m2 is None:
-            # Now that the tube's calibre is known: rings a radius apart along it.
+        if model.kind == "cylinder":
+            # Now that the tube's calibre and ends are known: rings a radius apart along it
+            # (evenly: the growth has stretched the stretches it grew).
             from segsnake.resample import interpolate_tube
 
-            m2 = tube_rings(model)
-            if m2 != model.m2:
-                model = interpolate_tube(model, m2)
+            model = interpolate_tube(model, tube_rings(model) if config.m2 is None else model.m2)
         branching(model)
     report("two classes", 0.5)
 

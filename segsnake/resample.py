@@ -88,16 +88,26 @@ def poles_on_long_axis(model: SphereModel, m1: int, m2: int) -> SphereModel:
 
 def interpolate_tube(model: CylinderModel, m2: int) -> CylinderModel:
     """A cylinder with ``m2`` intervals along that passes through ``model`` at its new control
-    points: ``c[k, l] = sigma(k / M1, l / m2)``, ``l = 0 .. m2``, and the two outer rows, which
-    only set the ends' slope, extrapolated linearly (``c[., -1] = 2 c[., 0] - c[., 1]``).
+    points, its rings evenly spaced along the tube: ``c[k, l] = sigma(k / M1, v_l)``, ``l = 0 ..
+    m2``, the ``v_l`` cutting the curve of ring centroids into equal lengths
+    (:func:`segsnake.profile.even_rings`), and the two outer rows, which only set the ends'
+    slope, extrapolated linearly (``c[., -1] = 2 c[., 0] - c[., 1]``).
+
+    Nothing in the energies holds the rings where they are along the tube (a tube's bending
+    is blind to a spacing that changes steadily, and the image to any motion within the
+    surface): a tube grown from a click's stretch to its ends comes back with its end rings
+    several times further apart than its middle ones, and misses a bulge between them. Even
+    rings are what "two rings per diameter" (:func:`segsnake.surfaces.axial_rings`) assumes.
 
     Unlike the L2 projection it cannot overshoot where the surface changes fast along the tube:
     a tube whose end tapers to a tip keeps a tip with its rings the right way round (projected,
     such a tip came back with its last rings inside out). Any straight elliptic cylinder is
     reproduced exactly (the new space holds it, and interpolation keeps what it holds).
     """
+    from segsnake.profile import even_rings
+
     u = np.arange(model.m1) / model.m1
-    rows = model.evaluate(u, np.arange(m2 + 1) / m2)[0]  # (M1, m2 + 1, 3)
+    rows = model.evaluate(u, even_rings(model, m2))[0]  # (M1, m2 + 1, 3)
     grid = np.concatenate([2 * rows[:, :1] - rows[:, 1:2], rows,
                            2 * rows[:, -1:] - rows[:, -2:-1]], axis=1)
     return CylinderModel(model.m1, m2, grid.reshape(-1, 3))  # k-major like the parameters

@@ -463,6 +463,7 @@ def test_init_in_batch_and_config_files(tmp_path):
 
 
 def test_interpolating_a_tube_to_other_rings_keeps_straight_cylinders_and_tips():
+    from segsnake.profile import even_rings
     from segsnake.resample import interpolate_tube
     from segsnake.surfaces import CylinderModel
 
@@ -479,6 +480,30 @@ def test_interpolating_a_tube_to_other_rings_keeps_straight_cylinders_and_tips()
     grid[:, 1] = centre + 0.05 * (grid[:, 1] - centre)
     tip = CylinderModel(8, 4, grid.reshape(-1, 3))
     finer = interpolate_tube(tip, 12)
-    knots = np.arange(13) / 12
-    assert np.abs(finer.evaluate(np.arange(8) / 8, knots)[0]
-                  - tip.evaluate(np.arange(8) / 8, knots)[0]).max() < 1e-10
+    assert np.abs(finer.evaluate(np.arange(8) / 8, np.arange(13) / 12)[0]
+                  - tip.evaluate(np.arange(8) / 8, even_rings(tip, 12))[0]).max() < 1e-10
+
+
+def test_interpolating_a_tube_spaces_its_rings_evenly():
+    # A straight tube whose rings lie at (l / 6)^2 of its length (what a growth from a click's
+    # stretch leaves: far-apart rings where it grew): the new rings are evenly spaced along it,
+    # and the surface is the same straight cylinder.
+    from segsnake.profile import ring_centroids
+    from segsnake.resample import interpolate_tube
+    from segsnake.surfaces import CylinderModel
+
+    m1, m2, length, r = 8, 6, 60.0, 4.0
+    t = np.arange(-1, m2 + 2) / m2
+    th = 2 * np.pi * np.arange(m1)[:, None] / m1
+    grid = np.stack(np.broadcast_arrays(r * np.cos(th), r * np.sin(th), length * t ** 2), -1)
+    uneven = CylinderModel(m1, m2, grid.reshape(-1, 3))
+    spacing = np.diff(ring_centroids(uneven, np.arange(m2 + 1) / m2)[0][:, 2])
+    assert spacing.max() > 5 * spacing.min()
+    for new_m2 in (6, 9):
+        even = interpolate_tube(uneven, new_m2)
+        c = ring_centroids(even, np.arange(new_m2 + 1) / new_m2)[0]
+        np.testing.assert_allclose(np.diff(c[:, 2]), c[-1, 2] / new_m2, rtol=1e-9)
+        np.testing.assert_allclose(c[[0, -1], 2], [0.0, length], atol=1e-9)
+        u, v = np.linspace(0, 1, 13), np.linspace(0, 1, 31)
+        s = even.evaluate(u, v)[0]
+        np.testing.assert_allclose(np.linalg.norm(s[..., :2], axis=-1), r, rtol=1e-3)
