@@ -134,6 +134,9 @@ CENTERLINE_TOL_MM = 1e-3
 CENTERLINE_ORDER = 8
 #: Stations per knot interval along the tube, at least (short tubes), for the centerline.
 STATIONS_PER_INTERVAL = 4
+#: Lines ``u = const`` per knot interval around whose mean speed along ``v`` spaces a tube's
+#: rings (:func:`even_rings`).
+RING_SPEED_SAMPLES = 4
 #: Complete sections needed for the sections' centerline (else the ring centroids).
 MIN_FULL_STATIONS = 4
 #: The complete sections within this many of their own radii of the first or last one do not
@@ -142,7 +145,7 @@ MIN_FULL_STATIONS = 4
 #: tapering stretch before it, which shifts its centroid and tilts the next pass's planes
 #: further: the 1 mm arch phantom's curve turned 8 degrees off its leg within 2 mm of the face,
 #: and its first row lost a fifth of its area to the cap (docs/benchmarks.md, session 25: at
-#: 0.5, 1 and 2 radii its largest diameter error is 3.9, 3.2 and 4.2 %, 9.9 % without).
+#: 0.5, 1 and 2 radii its largest diameter error is 1.9, 1.5 and 3.0 %, 7.3 % without).
 END_FIT_RADII = 1.0
 #: The profile's columns (``profile.csv``'s header, ``snake.json``'s ``profile.columns``).
 PROFILE_COLUMNS = ("arc_length_mm", "x_mm", "y_mm", "z_mm", "area_mm2", "equivalent_diameter_mm",
@@ -237,8 +240,12 @@ def ring_centroids(model: CylinderModel, v: NDArray) -> tuple[NDArray, NDArray]:
 
 
 def even_rings(model: CylinderModel, n: int) -> NDArray:
-    """The parameters ``v_0 = 0 < v_1 < ... < v_n = 1`` that cut the curve of ring centroids
-    (:func:`ring_centroids`) into ``n`` stretches of equal arc length.
+    """The parameters ``v_0 = 0 < v_1 < ... < v_n = 1`` that cut the tube into ``n`` stretches
+    of equal mean length along it: the arc length of ``v`` weighted by ``mean_u |sigma_v(u,
+    v)|``, the mean speed of the lines ``u = const`` (the ring centroids' arc length on a tube
+    of constant calibre; where it closes to a dome or widens, the lines' own length, so that
+    rings are not spared where the calibre changes fast). Evenly spaced parameters if the tube
+    has no length.
 
     Parameters
     ----------
@@ -250,8 +257,17 @@ def even_rings(model: CylinderModel, n: int) -> NDArray:
     -------
     ndarray (n + 1,)
     """
-    knots, table, speed = _ring_arc(model)
-    v = _parameters_at(speed, knots, table, table[-1] * np.arange(n + 1) / n)
+    knots = np.arange(model.m2 + 1) / model.m2
+    u = np.arange(RING_SPEED_SAMPLES * model.m1) / (RING_SPEED_SAMPLES * model.m1)
+
+    def speed(v: NDArray) -> NDArray:
+        return np.linalg.norm(model.evaluate(u, np.atleast_1d(v))[2], axis=-1).mean(axis=0)
+
+    table = _arc_table(speed, knots)
+    even = np.arange(n + 1) / n
+    if not table[-1] > 0:
+        return even
+    v = np.maximum.accumulate(_parameters_at(speed, knots, table, table[-1] * even))
     v[0], v[-1] = 0.0, 1.0
     return v
 
@@ -1082,8 +1098,13 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
                           intervals=max(1, int(np.ceil(model.m2 * span / s[-1] - 1e-9))))
 
         curve = fit(use)
-        # How far the curve moved at the stations.
-        shift = float(np.max(np.linalg.norm(curve.spline(s[use]) - p[use], axis=1)))
+        # The sections near an end (below) do not place the next pass's stations, whose curve
+        # goes straight on over them: how far the curve moved is measured at the others.
+        first, last = s[use][0], s[use][-1]
+        steer = use & (s >= first + END_FIT_RADII * radius) & (s <= last - END_FIT_RADII * radius)
+        if steer.sum() < MIN_FULL_STATIONS:
+            steer = use
+        shift = float(np.max(np.linalg.norm(curve.spline(s[steer]) - p[steer], axis=1)))
         if shift >= best_shift and best is not rings:
             break  # not converging: keep the best curve so far
         best, best_shift = curve, shift
@@ -1092,9 +1113,7 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
         # The next pass's planes: normal to the curve fitted without the sections near an end
         # (straight on from those further in), whose planes, tilted a little, reach the cap or
         # a taper beyond, whose pull on their centroids would tilt them further at each pass.
-        first, last = s[use][0], s[use][-1]
-        steer = use & (s >= first + END_FIT_RADII * radius) & (s <= last - END_FIT_RADII * radius)
-        guide = fit(steer) if steer.sum() >= MIN_FULL_STATIONS else best
+        guide = fit(steer)
         s = _samples(guide.length, min(step, guide.length / (STATIONS_PER_INTERVAL * model.m2)))
         p, t, v = guide.at(s)
     return best
@@ -1144,7 +1163,10 @@ def tube_profile(model: CylinderModel, spacing_mm: float = PROFILE_SPACING_MM) -
     s = _samples(curve.length, spacing_mm)
     p, t, v = curve.at(s)
     sec = _sections(surf, p, t, v, calipers=True)
-    ok = sec.status != _DROPPED
+    # (a cut no line crosses at the calipers' samples is no section: the plane of an end sample
+    # that runs along its end ring, on an exiting tube, had an area of 15 against 78 mm^2 a
+    # millimetre in, and no calipers)
+    ok = (sec.status != _DROPPED) & np.isfinite(sec.min_diameter) & np.isfinite(sec.max_diameter)
     # The two end samples lie on the caps: a cap not normal to the centerline cuts their section
     # through its middle (about half of it, and a jump with the least tilt), so they are
     # dropped rather than reported.

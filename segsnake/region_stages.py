@@ -22,6 +22,7 @@ from segsnake.distance import distance_within
 from segsnake.energy import FluxTerm
 from segsnake.errors import SegmentationError
 from segsnake.pipeline import SegmentResult, restart_options, usable_restart
+from segsnake.resample import interpolate_tube
 from segsnake.stage import (FOV_DENSITY, FOV_PAD, MAX_ORDER, REGULARIZATION, Run,
                             longest_intervals, quadrature_order)
 from segsnake.surfaces import CylinderModel, SplineSurface, axial_rings, model_from_dict
@@ -210,12 +211,11 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     report("region", 0.1)
     if not on_boundary:
         model, window = grow(model, window)
-        if model.kind == "cylinder":
+        if model.kind == "cylinder" and config.m2 is None:
             # Now that the tube's calibre and ends are known: rings a radius apart along it
-            # (evenly: the growth has stretched the stretches it grew).
-            from segsnake.resample import interpolate_tube
-
-            model = interpolate_tube(model, tube_rings(model) if config.m2 is None else model.m2)
+            # (evenly: the growth has stretched the stretches it grew). A given M2 (a prior's
+            # rings) is left as it is.
+            model = interpolate_tube(model, tube_rings(model))
         branching(model)
     report("two classes", 0.5)
 
@@ -284,6 +284,9 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         del density, shell
         if k < last:
             branching(model)
+            if model.kind == "cylinder" and config.m2 is None:
+                # (its rings evenly along it again: a round stretches what it grows too)
+                model = interpolate_tube(model, model.m2)
             continue
         round_start, final_window = start, window
         # (a tube's rings along follow its calibre: its finer grids are finer around only; a

@@ -89,14 +89,15 @@ def poles_on_long_axis(model: SphereModel, m1: int, m2: int) -> SphereModel:
 def interpolate_tube(model: CylinderModel, m2: int) -> CylinderModel:
     """A cylinder with ``m2`` intervals along that passes through ``model`` at its new control
     points, its rings evenly spaced along the tube: ``c[k, l] = sigma(k / M1, v_l)``, ``l = 0 ..
-    m2``, the ``v_l`` cutting the curve of ring centroids into equal lengths
+    m2``, the ``v_l`` cutting the tube into stretches of equal mean length along it
     (:func:`segsnake.profile.even_rings`), and the two outer rows, which only set the ends'
     slope, extrapolated linearly (``c[., -1] = 2 c[., 0] - c[., 1]``).
 
     Nothing in the energies holds the rings where they are along the tube (a tube's bending
     is blind to a spacing that changes steadily, and the image to any motion within the
     surface): a tube grown from a click's stretch to its ends comes back with its end rings
-    several times further apart than its middle ones, and misses a bulge between them. Even
+    several times further apart than its middle ones, and misses a bulge between them (the
+    region stages put a tube on even rings after its growth and before each later round). Even
     rings are what "two rings per diameter" (:func:`segsnake.surfaces.axial_rings`) assumes.
 
     Unlike the L2 projection it cannot overshoot where the surface changes fast along the tube:

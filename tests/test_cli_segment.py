@@ -721,3 +721,24 @@ def test_a_prior_gives_the_snake_its_size(ball, tmp_path):
     rc = main(["segment", str(image), "--out", str(tmp_path / "nine"), "--quiet",
                *init_args(ph), "--prior", str(prior), "--m1", "9", "--m2", "9"])
     assert rc == 3
+
+
+def test_exiting_tube_from_its_end_points_has_a_profile_on_every_row(tmp_path, capsys):
+    # Issue 16's exiting tube on 0.6 x 0.6 x 2.5 mm voxels as bench_tubes.py writes and runs it
+    # (exit_0.6x0.6x2.5 from its end points): its ends lie on two faces, 68 and 33 degrees off
+    # its axis. The sample on one end cap was taken as a full section (a cut along the end
+    # ring, 15 mm^2 where the tube has 78) that no line crossed at the calipers' samples: a row
+    # of NaN in profile.csv, and the QC picture's profile panel failed the run (exit 3).
+    ph = make_phantom("exiting-tube", seed=0, radius=5.0, foreground=255.0, background=0.0,
+                      noise=50.0 / 255.0, spacing=(0.6, 0.6, 2.5))
+    write_phantom(ph, tmp_path / "phantom", overwrite=True)
+    e = ph.params["geometry"]["ends_init"]
+    out = tmp_path / "out"
+    rc = main(["segment", str(tmp_path / "phantom" / "image.nii.gz"), "--out", str(out),
+               "--truth", str(tmp_path / "phantom" / "truth.nii.gz"), "--json",
+               "--shape", "cylinder", "--axis-start", *map(str, e["axis_start"]),
+               "--axis-end", *map(str, e["axis_end"]), "--radius", str(e["radius"])])
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert rc == 0 and summary["dice"] >= 0.95
+    rows = np.loadtxt(out / "profile.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert len(rows) > 60 and np.all(np.isfinite(rows))

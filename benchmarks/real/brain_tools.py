@@ -76,10 +76,6 @@ _LAUNCHER = r"""
 import json, os, signal, sys, time
 out, timeout, cmd = sys.argv[1], float(sys.argv[2]), sys.argv[3:]
 t0 = time.perf_counter()
-try:  # its own process group, so that a timeout kills the tool's children too
-    pid = os.posix_spawnp(cmd[0], cmd, os.environ, setpgroup=0)
-except OSError as exc:
-    sys.exit(f"cannot run {cmd[0]}: {exc}")
 killed = []
 def kill_group(signum, _frame):
     if signum == signal.SIGALRM:
@@ -90,8 +86,17 @@ def kill_group(signum, _frame):
         pass
     if signum != signal.SIGALRM:  # the benchmark was stopped: the tool goes with it
         os._exit(128 + signum)
-for signum in (signal.SIGALRM, signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+signals = (signal.SIGALRM, signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+for signum in signals:
     signal.signal(signum, kill_group)
+# Held until the tool's pid is known (a stop during the spawn would leave it running); the tool
+# starts with none held.
+signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+try:  # its own process group, so that a timeout kills the tool's children too
+    pid = os.posix_spawnp(cmd[0], cmd, os.environ, setpgroup=0, setsigmask=())
+except OSError as exc:
+    sys.exit(f"cannot run {cmd[0]}: {exc}")
+signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
 signal.setitimer(signal.ITIMER_REAL, timeout)  # 0: no timeout
 _, status, ru = os.wait4(pid, 0)
 signal.setitimer(signal.ITIMER_REAL, 0)
