@@ -18,6 +18,12 @@ Tools (settings in :data:`PEER_PARAMS`, the reasons in the README):
     the sphere cases: ``segsnake segment --center`` with the click's centre (and each perturbed
     click's) and no radius: the sphere comes from the image around it
     (:func:`segsnake.click.click_radius`).
+``segsnake, centreline``
+    the tube cases: ``segsnake segment --centerline`` with 5 points along the click's axis
+    (:func:`centerline_click`: the reference's centroids in 5 of its axial slices evenly
+    spaced between the click's ends, each with the click's radius), and each perturbed click's
+    (the same points moved as the perturbation moves the click's axis): issue 16's "from a
+    5-point centerline".
 ``segsnake, perfect edges``
     the ceiling of model and optimizer: the same command on the reference mask itself as the
     image, with the click and its default options: the region energy chooses M (the issue's
@@ -74,10 +80,13 @@ SEGSNAKE = "segsnake"
 NO_CLICK = "segsnake, no click"
 CENTRE_ONLY = "segsnake, centre only"
 CEILING = "segsnake, perfect edges"
+CENTRELINE = "segsnake, centreline"
 BRAIN_TOOLS = ("BET", "ROBEX")
 PEERS = ("skimage MCV", "skimage MGAC", "SimpleITK GAC", "SimpleITK confidence connected")
-TOOLS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CEILING, *BRAIN_TOOLS, *PEERS)
-OURS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CEILING)
+TOOLS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CENTRELINE, CEILING, *BRAIN_TOOLS, *PEERS)
+OURS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CENTRELINE, CEILING)
+#: Points of the tube cases' centreline click (issue 16's "5-point centerline").
+CENTRELINE_POINTS = 5
 
 #: Peer parameters, chosen by ``--tune`` on the tuning case (mean Dice over its click and
 #: perturbed clicks) and frozen; the sweep's numbers are in docs/benchmarks.md.
@@ -130,10 +139,40 @@ def clicks(case: dict, n: int) -> list[tuple[str, dict]]:
                                         for k in range(1, n + 1)]
 
 
-def init_args(init: dict | None) -> list[str]:
-    """``segsnake segment`` flags for an initialization (none: the image decides)."""
+def centerline_click(click: dict, start: dict, truth: np.ndarray, sp: np.ndarray) -> dict:
+    """A tube case's :data:`CENTRELINE_POINTS`-point centreline for the cylinder ``start``.
+
+    The points are the reference's centroids in axial slices (array axis 2, as the tube cases'
+    references run) evenly spaced between the ends of the case's ``click``, each with the
+    click's radius; for a perturbed ``start`` they are moved as it moves the click's axis (its
+    middle's shift, the rotation taking one axis to the other) and given its radius.
+    """
+    a0, a1 = (np.asarray(click[k], dtype=float) * sp for k in ("axis_start", "axis_end"))
+    b0, b1 = (np.asarray(start[k], dtype=float) * sp for k in ("axis_start", "axis_end"))
+    ks = np.rint(np.linspace(a0[2], a1[2], CENTRELINE_POINTS) / sp[2]).astype(int)
+    from scipy import ndimage
+
+    points = np.array([[*ndimage.center_of_mass(truth[:, :, k]), k] for k in ks]) * sp
+    u, w = (a1 - a0) / np.linalg.norm(a1 - a0), (b1 - b0) / np.linalg.norm(b1 - b0)
+    axis, c = np.cross(u, w), float(u @ w)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + k + k @ k / (1.0 + c)  # (Rodrigues: u to w; the tilts are < 90 degrees)
+    moved = (points - 0.5 * (a0 + a1)) @ rot.T + 0.5 * (b0 + b1)
+    return {"shape": "cylinder", "centerline": [[*np.round(q / sp, 3).tolist(),
+                                                 float(start["radius"])] for q in moved]}
+
+
+def init_args(init: dict | None, tmp: str | None = None) -> list[str]:
+    """``segsnake segment`` flags for an initialization (none: the image decides; a centreline
+    is written to ``tmp`` as the CSV ``--centerline`` reads)."""
     if init is None:
         return []
+    if "centerline" in init:
+        path = os.path.join(tmp, "centerline.csv")
+        with open(path, "w") as fh:
+            fh.write("x,y,z,radius\n" + "".join(",".join(map(str, q)) + "\n"
+                                                for q in init["centerline"]))
+        return ["--shape", "cylinder", "--centerline", path]
     if init["shape"] == "sphere":  # (no radii: the click alone)
         return ["--center", *map(str, init["center"]),
                 *(["--radii", *map(str, init["radii"])] if init.get("radii") else [])]
@@ -177,7 +216,7 @@ def run_segsnake(image: str, init: dict | None, tmp: str, extra: list[str] | Non
     out = os.path.join(tmp, "seg")
     shutil.rmtree(out, ignore_errors=True)
     cmd = [_segsnake_exe(), "segment", image, "--out", out, "--quiet", "--json", "--overwrite",
-           *init_args(init), *(extra or [])]
+           *init_args(init, tmp), *(extra or [])]
     res = run_measured(cmd, timeout_s=TIMEOUT_S)
     mask = os.path.join(out, "mask.nii.gz")
     res["mask"] = mask if res["returncode"] == 0 and os.path.exists(mask) else None
@@ -300,6 +339,9 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
             if CENTRE_ONLY in tools and init["shape"] == "sphere":
                 centre = {"shape": "sphere", "center": init["center"]}
                 record(CENTRE_ONLY, label, centre, run_segsnake(case["image"], centre, tmp))
+            if CENTRELINE in tools and init["shape"] == "cylinder":
+                line = centerline_click(case["init"], init, truth, sp)
+                record(CENTRELINE, label, line, run_segsnake(case["image"], line, tmp))
             # On the brain, users run BET and ROBEX; a generic region grower's region of
             # interest would be the whole 7 M-voxel head (15+ min a run for the morphological ones).
             for method in (m for m in PEERS if m in tools and case["name"] != BRAIN_CASE):

@@ -370,3 +370,33 @@ def test_merge_replaces_a_rerun_tool_and_the_table_counts_failures(tmp_path):
     ours[2]["dice"] = 0.95
     assert bench_real.markdown(merged).endswith("on 1 of the 2 results below Dice 0.8, on 0 of "
                                                 "the 1 above 0.9.")
+
+
+def test_centerline_click_follows_the_reference_and_moves_with_the_click():
+    # A tube along the array's axis 2 whose centre drifts along axis 0: the 5 points are the
+    # reference's slice centroids between the click's ends, with its radius; a perturbed click
+    # moves them rigidly (their distances kept) and gives them its radius.
+    from bench_real import CENTRELINE_POINTS, centerline_click
+
+    from segsnake.perturb import perturb_init
+
+    sp = np.array([0.5, 0.5, 2.0])
+    i, j, k = np.meshgrid(np.arange(60), np.arange(40), np.arange(30), indexing="ij")
+    truth = (i - (20 + 0.8 * k)) ** 2 + (j - 20) ** 2 <= 36
+    click = {"shape": "cylinder", "axis_start": [24.0, 20.0, 5.0], "axis_end": [40.0, 20.0, 25.0],
+             "radius": 3.0}
+    line = np.array(centerline_click(click, click, truth, sp)["centerline"])
+    assert len(line) == CENTRELINE_POINTS
+    np.testing.assert_allclose(line[:, 2], [5, 10, 15, 20, 25])
+    np.testing.assert_allclose(line[:, 0], 20 + 0.8 * line[:, 2], atol=0.05)
+    np.testing.assert_allclose(line[:, 1], 20, atol=0.05)
+    assert np.all(line[:, 3] == 3.0)
+    moved = perturb_init(click, sp, seed=3)
+    again = np.array(centerline_click(click, moved, truth, sp)["centerline"])
+    assert np.all(again[:, 3] == moved["radius"]) and not np.allclose(again[:, :3], line[:, :3])
+
+    def gaps(points):
+        mm = points[:, :3] * sp
+        return np.linalg.norm(mm[:, None] - mm[None], axis=-1)
+
+    np.testing.assert_allclose(gaps(again), gaps(line), atol=5e-3)
