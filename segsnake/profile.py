@@ -69,8 +69,8 @@ closed at its ends by planar caps through the end rings as its mask and volume a
   stations every ``min(spacing, length / (4 M2))`` mm and fit a cubic spline by least squares to
   the centroids of the complete sections, at the stations' arc lengths, with the tube's own
   resolution along its length (``M2`` knot intervals over its length, knots at the stations'
-  quantiles), until the curve moves by no more than :data:`CENTERLINE_TOL_MM` at the stations
-  (at most :data:`CENTERLINE_ITERATIONS` passes; a pass that moves it more than the one before
+  quantiles), until the curve that places the stations (below) moves by no more than
+  :data:`CENTERLINE_TOL_MM` at them (at most :data:`CENTERLINE_ITERATIONS` passes; a pass that moves it more than the one before
   ends it, and the better curve is kept). Why not through every centroid: the centroids of
   sections through a fold move by tenths of a millimetre within a millimetre (0.25 mm per mm in
   the bend of issue 16's arch), and a spline through each station turned that into 26 degrees
@@ -82,7 +82,8 @@ closed at its ends by planar caps through the end rings as its mask and volume a
   cut part of it). The next pass's stations follow the curve fitted without the sections within
   :data:`END_FIT_RADII` of their radius of the first or last complete one (a slightly tilted
   plane there reaches the cap or a taper, which pulls its centroid and would tilt the curve
-  further at each pass); the curve kept is fitted to them all. Why not the ring centroids: a
+  further at each pass); the curve kept, the pass's whose stations moved least, is fitted to
+  them all. Why not the ring centroids: a
   ring's mean point is not its section's centroid where the rings tilt (into an oblique face,
   across a bend) or their points bunch on one side, and a ring projected on the plane normal to
   that curve is not the section; a section's centroid is on the axis of any straight tube and on a
@@ -1097,23 +1098,21 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
             return _Curve(sec.centroid[keep], v[keep], caps, x=s[keep],
                           intervals=max(1, int(np.ceil(model.m2 * span / s[-1] - 1e-9))))
 
-        curve = fit(use)
-        # The sections near an end (below) do not place the next pass's stations, whose curve
-        # goes straight on over them: how far the curve moved is measured at the others.
+        # The next pass's planes: normal to the curve fitted without the sections near an end
+        # (straight on from those further in), whose planes, tilted a little, reach the cap or
+        # a taper beyond, whose pull on their centroids would tilt them further at each pass.
+        # That curve places the stations: how far it moved at them is the iteration's measure.
         first, last = s[use][0], s[use][-1]
         steer = use & (s >= first + END_FIT_RADII * radius) & (s <= last - END_FIT_RADII * radius)
         if steer.sum() < MIN_FULL_STATIONS:
             steer = use
-        shift = float(np.max(np.linalg.norm(curve.spline(s[steer]) - p[steer], axis=1)))
+        guide = fit(steer)
+        shift = float(np.max(np.linalg.norm(guide.spline(s[steer]) - p[steer], axis=1)))
         if shift >= best_shift and best is not rings:
             break  # not converging: keep the best curve so far
-        best, best_shift = curve, shift
+        best, best_shift = fit(use), shift
         if shift <= CENTERLINE_TOL_MM:
             break
-        # The next pass's planes: normal to the curve fitted without the sections near an end
-        # (straight on from those further in), whose planes, tilted a little, reach the cap or
-        # a taper beyond, whose pull on their centroids would tilt them further at each pass.
-        guide = fit(steer)
         s = _samples(guide.length, min(step, guide.length / (STATIONS_PER_INTERVAL * model.m2)))
         p, t, v = guide.at(s)
     return best

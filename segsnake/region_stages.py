@@ -211,11 +211,11 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     report("region", 0.1)
     if not on_boundary:
         model, window = grow(model, window)
-        if model.kind == "cylinder" and config.m2 is None:
+        if model.kind == "cylinder" and config.prior is None:
             # Now that the tube's calibre and ends are known: rings a radius apart along it
-            # (evenly: the growth has stretched the stretches it grew). A given M2 (a prior's
-            # rings) is left as it is.
-            model = interpolate_tube(model, tube_rings(model))
+            # (unless M2 is given), evenly (the growth has stretched the stretches it grew). A
+            # prior's rings are left as they are: they correspond to its reference's.
+            model = interpolate_tube(model, tube_rings(model) if config.m2 is None else model.m2)
         branching(model)
     report("two classes", 0.5)
 
@@ -284,8 +284,9 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         del density, shell
         if k < last:
             branching(model)
-            if model.kind == "cylinder" and config.m2 is None:
-                # (its rings evenly along it again: a round stretches what it grows too)
+            if model.kind == "cylinder" and config.prior is None and not on_boundary:
+                # (its rings evenly along it again: a round stretches what it grows too; not a
+                # saved or edited surface's, whose control points are the user's)
                 model = interpolate_tube(model, model.m2)
             continue
         round_start, final_window = start, window

@@ -393,7 +393,10 @@ def test_centerline_click_follows_the_reference_and_moves_with_the_click():
     assert np.all(line[:, 3] == 3.0)
     moved = perturb_init(click, sp, seed=3)
     again = np.array(centerline_click(click, moved, truth, sp)["centerline"])
-    assert np.all(again[:, 3] == moved["radius"]) and not np.allclose(again[:, :3], line[:, :3])
+    assert np.all(again[:, 3] == moved["radius"])
+    # (the click's ends lie on the reference's centroids: the moved points' ends are its ends)
+    np.testing.assert_allclose(again[[0, -1], :3], [moved["axis_start"], moved["axis_end"]],
+                               atol=0.05)
 
     def gaps(points):
         mm = points[:, :3] * sp

@@ -511,10 +511,10 @@ def test_interpolating_a_tube_spaces_its_rings_evenly():
 
 def test_even_rings_do_not_spare_a_closing_end():
     # A tube of radius 5 whose last four rings close it like a dome (to 0.4 mm): its rings'
-    # mean points advance 5 mm an interval along the tube but hardly at all on the dome, where
-    # the surface itself does. Rings spaced by the mean points' arc length would leave the dome
-    # to two of them (the surface moved 0.77 mm, the volume -1.0 %); by the surface's own length
-    # along the tube the dome keeps its rings.
+    # mean points advance 5 mm an interval along the tube but little on the dome, where the
+    # surface itself does. Rings spaced by the mean points' arc length put the dome's last two
+    # at v = 0.715 and 1, too few where it closes (the surface moved 0.77 mm, the volume
+    # -1.0 %); by the surface's own length along the tube, at 0.823 and 1.
     from scipy.spatial import cKDTree
 
     from segsnake.resample import interpolate_tube

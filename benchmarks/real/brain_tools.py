@@ -87,16 +87,17 @@ def kill_group(signum, _frame):
     if signum != signal.SIGALRM:  # the benchmark was stopped: the tool goes with it
         os._exit(128 + signum)
 signals = (signal.SIGALRM, signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+# Held until the tool's pid is known (a stop during the spawn would leave it running); the tool
+# starts with the launcher's own mask and default dispositions (Python ignores SIGPIPE, SIGXFSZ).
+held = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
 for signum in signals:
     signal.signal(signum, kill_group)
-# Held until the tool's pid is known (a stop during the spawn would leave it running); the tool
-# starts with none held.
-signal.pthread_sigmask(signal.SIG_BLOCK, signals)
 try:  # its own process group, so that a timeout kills the tool's children too
-    pid = os.posix_spawnp(cmd[0], cmd, os.environ, setpgroup=0, setsigmask=())
+    pid = os.posix_spawnp(cmd[0], cmd, os.environ, setpgroup=0, setsigmask=held,
+                          setsigdef=(signal.SIGPIPE, signal.SIGXFSZ))
 except OSError as exc:
     sys.exit(f"cannot run {cmd[0]}: {exc}")
-signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
+signal.pthread_sigmask(signal.SIG_SETMASK, held)
 signal.setitimer(signal.ITIMER_REAL, timeout)  # 0: no timeout
 _, status, ru = os.wait4(pid, 0)
 signal.setitimer(signal.ITIMER_REAL, 0)
