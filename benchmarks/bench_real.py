@@ -147,11 +147,11 @@ def centerline_click(click: dict, start: dict, truth: np.ndarray, sp: np.ndarray
     click's radius; for a perturbed ``start`` they are moved as it moves the click's axis (its
     middle's shift, the rotation taking one axis to the other) and given its radius.
     """
+    from scipy import ndimage
+
     a0, a1 = (np.asarray(click[k], dtype=float) * sp for k in ("axis_start", "axis_end"))
     b0, b1 = (np.asarray(start[k], dtype=float) * sp for k in ("axis_start", "axis_end"))
     ks = np.rint(np.linspace(a0[2], a1[2], CENTRELINE_POINTS) / sp[2]).astype(int)
-    from scipy import ndimage
-
     points = np.array([[*ndimage.center_of_mass(truth[:, :, k]), k] for k in ks]) * sp
     u, w = (a1 - a0) / np.linalg.norm(a1 - a0), (b1 - b0) / np.linalg.norm(b1 - b0)
     axis, c = np.cross(u, w), float(u @ w)

@@ -70,12 +70,13 @@ closed at its ends by planar caps through the end rings as its mask and volume a
   the centroids of the complete sections, at the stations' arc lengths, with the tube's own
   resolution along its length (``M2`` knot intervals over its length, knots at the stations'
   quantiles), until the curve that places the stations (below) moves by no more than
-  :data:`CENTERLINE_TOL_MM` at them (at most :data:`CENTERLINE_ITERATIONS` passes; a pass that moves it more than the one before
-  ends it, and the better curve is kept). Why not through every centroid: the centroids of
-  sections through a fold move by tenths of a millimetre within a millimetre (0.25 mm per mm in
-  the bend of issue 16's arch), and a spline through each station turned that into 26 degrees
-  between neighbouring samples' normals, their sections into 397-482 mm^2 where the tube has
-  430, and the next pass diverged; the surface itself has no detail finer than its knots. A
+  :data:`CENTERLINE_TOL_MM` at them (at most :data:`CENTERLINE_ITERATIONS` passes; a pass that
+  moves it more than the one before ends it, and the better curve is kept). Why not through
+  every centroid: the centroids of sections through a fold move by tenths of a millimetre
+  within a millimetre (0.25 mm per mm in the bend of issue 16's arch), and a spline through each
+  station turned that into 26 degrees between neighbouring samples' normals, their sections
+  into 397-482 mm^2 where the tube has 430, and the next pass diverged; the surface itself has
+  no detail finer than its knots. A
   centroid more than half its section's radius from its station is not followed (a pinched or
   folded stretch). Beyond the first and last complete sections the curve goes straight on along
   its end tangents to the end caps' planes (a capped section's centroid is off the axis: the cap
@@ -83,12 +84,11 @@ closed at its ends by planar caps through the end rings as its mask and volume a
   :data:`END_FIT_RADII` of their radius of the first or last complete one (a slightly tilted
   plane there reaches the cap or a taper, which pulls its centroid and would tilt the curve
   further at each pass); the curve kept, the pass's whose stations moved least, is fitted to
-  them all. Why not the ring centroids: a
-  ring's mean point is not its section's centroid where the rings tilt (into an oblique face,
-  across a bend) or their points bunch on one side, and a ring projected on the plane normal to
-  that curve is not the section; a section's centroid is on the axis of any straight tube and on a
-  torus' centre circle. With fewer than :data:`MIN_FULL_STATIONS` complete sections the ring
-  centroids are the centerline.
+  them all. Why not the ring centroids: a ring's mean point is not its section's centroid where
+  the rings tilt (into an oblique face, across a bend) or their points bunch on one side, and a
+  ring projected on the plane normal to that curve is not the section; a section's centroid is
+  on the axis of any straight tube and on a torus' centre circle. With fewer than
+  :data:`MIN_FULL_STATIONS` complete sections the ring centroids are the centerline.
 * the profile is sampled every ``spacing_mm`` of the centerline's arc length from its ``v = 0``
   end, plus the far end.
 
