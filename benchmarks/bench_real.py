@@ -162,17 +162,13 @@ def centerline_click(click: dict, start: dict, truth: np.ndarray, sp: np.ndarray
                                                  float(start["radius"])] for q in moved]}
 
 
-def init_args(init: dict | None, tmp: str | None = None) -> list[str]:
+def init_args(init: dict | None, centerline_csv: str | None = None) -> list[str]:
     """``segsnake segment`` flags for an initialization (none: the image decides; a centreline
-    is written to ``tmp`` as the CSV ``--centerline`` reads)."""
+    is read from ``centerline_csv``, where :func:`run_segsnake` wrote it)."""
     if init is None:
         return []
     if "centerline" in init:
-        path = os.path.join(tmp, "centerline.csv")
-        with open(path, "w") as fh:
-            fh.write("x,y,z,radius\n" + "".join(",".join(map(str, q)) + "\n"
-                                                for q in init["centerline"]))
-        return ["--shape", "cylinder", "--centerline", path]
+        return ["--shape", "cylinder", "--centerline", centerline_csv]
     if init["shape"] == "sphere":  # (no radii: the click alone)
         return ["--center", *map(str, init["center"]),
                 *(["--radii", *map(str, init["radii"])] if init.get("radii") else [])]
@@ -215,8 +211,13 @@ def run_segsnake(image: str, init: dict | None, tmp: str, extra: list[str] | Non
 
     out = os.path.join(tmp, "seg")
     shutil.rmtree(out, ignore_errors=True)
+    csv_path = os.path.join(tmp, "centerline.csv")
+    if init is not None and "centerline" in init:  # (the CSV --centerline reads)
+        with open(csv_path, "w") as fh:
+            fh.write("x,y,z,radius\n" + "".join(",".join(map(str, q)) + "\n"
+                                                for q in init["centerline"]))
     cmd = [_segsnake_exe(), "segment", image, "--out", out, "--quiet", "--json", "--overwrite",
-           *init_args(init, tmp), *(extra or [])]
+           *init_args(init, csv_path), *(extra or [])]
     res = run_measured(cmd, timeout_s=TIMEOUT_S)
     mask = os.path.join(out, "mask.nii.gz")
     res["mask"] = mask if res["returncode"] == 0 and os.path.exists(mask) else None

@@ -258,13 +258,12 @@ def even_rings(model: CylinderModel, n: int) -> NDArray:
     -------
     ndarray (n + 1,)
     """
-    knots = np.arange(model.m2 + 1) / model.m2
     u = np.arange(RING_SPEED_SAMPLES * model.m1) / (RING_SPEED_SAMPLES * model.m1)
 
     def speed(v: NDArray) -> NDArray:
         return np.linalg.norm(model.evaluate(u, np.atleast_1d(v))[2], axis=-1).mean(axis=0)
 
-    table = _arc_table(speed, knots)
+    knots, table = _arc_along(model, speed)
     even = np.arange(n + 1) / n
     if not table[-1] > 0:
         return even
@@ -275,12 +274,16 @@ def even_rings(model: CylinderModel, n: int) -> NDArray:
 
 def _ring_arc(model: CylinderModel) -> tuple[NDArray, NDArray, Speed]:
     """The knots along ``v``, the ring centroids' arc length at them, and its speed."""
-    knots = np.arange(model.m2 + 1) / model.m2
-
     def speed(v: NDArray) -> NDArray:
         return np.linalg.norm(ring_centroids(model, v)[1], axis=-1)
 
-    return knots, _arc_table(speed, knots), speed
+    return (*_arc_along(model, speed), speed)
+
+
+def _arc_along(model: CylinderModel, speed: Speed) -> tuple[NDArray, NDArray]:
+    """The knots along ``v`` and the arc length of ``speed`` from ``v = 0`` at them."""
+    knots = np.arange(model.m2 + 1) / model.m2
+    return knots, _arc_table(speed, knots)
 
 
 # --------------------------------------------------------------------------------------------
