@@ -225,6 +225,21 @@ def test_coarse_to_fine_refines_a_tube_around_and_keeps_its_rings():
     assert given.model.m1 == 8 and not any(h["stage"].startswith("grid") for h in given.history)
 
 
+def test_a_thin_centerline_start_grows_to_its_tube():
+    # A 5-point centerline of a tube of radius 10 mm at a radius of 1.5 mm: 32 rings along its
+    # 49 mm. Growing around and along at once, its region stage needs more than the eight
+    # quadrature rounds a stage once had: it stopped inside the lumen, and the run failed ("no
+    # boundary found", 0.18 spreads between inside and outside). Measured: Dice 0.994.
+    ph = make_phantom("exiting-tube", seed=0, radius=10.0)
+    a0, a1 = np.array(ph.init["axis_start"]), np.array(ph.init["axis_end"])
+    points = [[*(a0 + t * (a1 - a0)), 1.5] for t in np.linspace(0, 1, 5)]
+    res = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping({"centerline": points}))
+    region = res.history[0]
+    assert region["stage"] == "region" and region["iterations"] > 0
+    assert dice(res.mask, ph.truth) >= 0.98
+    assert res.settings["ends"] == ["field of view", "field of view"]
+
+
 def test_boundary_fraction_is_the_share_of_the_surface_on_a_step():
     from segsnake.region import boundary_fraction
     from segsnake.surfaces import SphereModel
