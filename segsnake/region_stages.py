@@ -245,9 +245,13 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         contrast, polarity = rg.step_contrast(sub, inside, shell)
         if contrast < p.min_separation * intensity.sigma:
             # (a click alone started from one tissue's ball: an object of several needs a radius)
-            hint = " or give --radii (the click alone found one tissue's ball)" \
-                if config.center is not None and config.radii is None and not on_boundary \
-                and model.kind == "sphere" else ""
+            hint = ""
+            if not on_boundary and model.kind == "sphere" and config.center is not None \
+                    and config.radii is None:
+                hint = " or give --radii (the click alone found one tissue's ball)"
+            elif not on_boundary and model.kind == "cylinder" and config.centerline is None:
+                # (a straight cylinder between two points of a bent tube lies mostly outside it)
+                hint = " or give points along the tube (--centerline) if it bends"
             raise SegmentationError(
                 f"no boundary found: inside and outside the surface differ by {contrast:.3g}, "
                 f"{contrast / intensity.sigma:.2f} x the click's spread; check the "
