@@ -180,10 +180,10 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
     A stage runs in rounds, as many as its iteration cap allows. Each round picks the quadrature
     order for intervals up to 1.5 times the current longest one and refuses steps beyond that; a
     round that ends at that limit is followed by another (a surface that grows far needs several:
-    a thin tube grows around and along at once, and each growth takes its own rounds). A round that converged is then checked: the image energy at
-    twice the order must agree to ``QUADRATURE_RTOL``, else the next round runs at the finer
-    order. The check matters: an under-resolved quadrature is not just inaccurate, the optimizer
-    *exploits* it (it grows a spike whose few nodes all sit on favourable values; measured: order
+    a thin tube grows around and along at once, and each growth takes its own rounds). A round
+    that converged is then checked: the image energy at twice the order must agree to
+    ``QUADRATURE_RTOL``, else the next round runs at the finer order. The check matters: an
+    under-resolved quadrature is not just inaccurate, the optimizer *exploits* it (it grows a spike whose few nodes all sit on favourable values; measured: order
     4 gave -104695 where order 16 gives -92674 on a noisy ball). So every
     ``QUADRATURE_CHECK_EVERY`` iterations the running round is checked too, with the looser
     ``QUADRATURE_RTOL_RUNNING``, and a failure ends it (:class:`QuadratureCheck`). A stage
@@ -234,7 +234,7 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
     resolved = False
     tol = tol or max(config.tol, 1e-5)
     max_iter = config.max_iter - used
-    while True:  # (each round that goes on took a step, or doubled the order up to MAX_ORDER)
+    while True:  # (each round that goes on took a step, or raised its order to MAX_ORDER)
         reference, resumed = model, resume is not None
         if resumed:
             reference, order = resume
