@@ -385,6 +385,8 @@ POSITION_KEYS = ("center", "seed_point", "axis_start", "axis_end")
 PATH_KEYS = ("prior", "init", "centerline") + POSITION_KEYS
 # The options that describe a new initial shape, which a start from a saved snake (init) replaces.
 SHAPE_KEYS = ("center", "radii", "axis_start", "axis_end", "radius", "centerline")
+# The options only a cylinder takes: given without a shape, they imply it.
+CYLINDER_KEYS = ("axis_start", "axis_end", "centerline")
 # The options a centerline (a cylinder along a polyline) replaces.
 CENTERLINE_EXCLUDES = ("center", "radii", "axis_start", "axis_end")
 
@@ -489,9 +491,9 @@ class SegmentConfig:
                 values[key] = _VALIDATORS[key](value)
             except ValueError as exc:
                 raise ConfigError(f"{where}: {key}: {exc}") from None
-        if values.get("centerline") is not None and "shape" not in seen and \
-                values.get("shape", "sphere") == "sphere":
-            values["shape"] = "cylinder"  # a centerline is a tube's: it implies the cylinder
+        if "shape" not in seen and values.get("shape", "sphere") == "sphere" and \
+                any(values.get(k) is not None for k in CYLINDER_KEYS):
+            values["shape"] = "cylinder"  # a centerline or an axis is a tube's: the cylinder
         config = cls(**values)
         problem = config._consistency_problem()
         if problem is not None:
@@ -521,6 +523,11 @@ class SegmentConfig:
                                       f"{verb} another initial shape: give one or the other")
         # (a length the shape does not take would be ignored: a ball from --radius would
         # silently start from the click alone)
+        given = [k for k in CYLINDER_KEYS[:2] if getattr(self, k) is not None]
+        if self.shape == "sphere" and given:
+            verb = "describes" if len(given) == 1 else "describe"
+            return given[0], (f"{' and '.join(given)} {verb} a cylinder's axis; shape sphere "
+                              f"takes a center and radii")
         if self.shape == "sphere" and self.radius is not None:
             return "radius", ("radius is a cylinder's; a sphere takes radii, its three "
                               "semi-axes (for a ball of radius R: radii R R R)")

@@ -53,8 +53,8 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
     _vec3(g, "--radii", ("RI", "RJ", "RK"), "sphere radii (default: with --center and the "
           "region energy, the largest ball about the click that looks like one tissue; "
           "otherwise half the largest object's size)")
-    _position(g, "--axis-start", "cylinder axis start point (a markups file with two points: "
-                                 "start and end)")
+    _position(g, "--axis-start", "cylinder axis start point, implying --shape cylinder (a "
+                                 "markups file with two points: start and end)")
     _position(g, "--axis-end", "cylinder axis end point")
     g.add_argument("--radius", type=float, default=None,
                    help="cylinder radius (voxels across the axis, or mm with --world)")
