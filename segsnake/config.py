@@ -521,19 +521,6 @@ class SegmentConfig:
                 verb = "describes" if len(given) == 1 else "describe"
                 return "centerline", (f"centerline gives the tube's axis; {', '.join(given)} "
                                       f"{verb} another initial shape: give one or the other")
-        # (a length the shape does not take would be ignored: a ball from --radius would
-        # silently start from the click alone)
-        given = [k for k in CYLINDER_KEYS[:2] if getattr(self, k) is not None]
-        if self.shape == "sphere" and given:
-            verb = "describes" if len(given) == 1 else "describe"
-            return given[0], (f"{' and '.join(given)} {verb} a cylinder's axis; shape sphere "
-                              f"takes a center and radii")
-        if self.shape == "sphere" and self.radius is not None:
-            return "radius", ("radius is a cylinder's; a sphere takes radii, its three "
-                              "semi-axes (for a ball of radius R: radii R R R)")
-        if self.shape == "cylinder" and self.radii is not None:
-            return "radii", ("radii are a sphere's semi-axes; a cylinder takes one radius "
-                             "(or a radius per centerline point)")
         if isinstance(self.axis_start, list) and isinstance(self.axis_end, list):
             length = math.dist(self.axis_start, self.axis_end)
             if length == 0.0:

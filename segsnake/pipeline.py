@@ -140,6 +140,16 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
         return r if config.world else r * sp
 
     if config.shape == "sphere":
+        # (a cylinder's radius or axis that the sphere would ignore, deciding its start from the
+        # click alone or the image: refused. Given beside a sphere's own radii or centre, as a
+        # YAML base's or a batch's defaults may leave them, they are left alone.)
+        if config.radius is not None and config.radii is None:
+            raise ConfigError("radius is a cylinder's; a sphere takes radii, its three semi-axes "
+                              "(for a ball of radius R: radii R R R)")
+        if config.center is None and (config.axis_start is not None or
+                                      config.axis_end is not None):
+            raise ConfigError("axis_start and axis_end describe a cylinder's axis; a sphere "
+                              "takes a center and radii")
         m1 = config.m1 or 9
         m2 = config.m2 or 9
         center = point(config.center, "--center")

@@ -183,8 +183,9 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
     a thin tube grows around and along at once, and each growth takes its own rounds). A round
     that converged is then checked: the image energy at twice the order must agree to
     ``QUADRATURE_RTOL``, else the next round runs at the finer order. The check matters: an
-    under-resolved quadrature is not just inaccurate, the optimizer *exploits* it (it grows a spike whose few nodes all sit on favourable values; measured: order
-    4 gave -104695 where order 16 gives -92674 on a noisy ball). So every
+    under-resolved quadrature is not just inaccurate, the optimizer *exploits* it (it grows a
+    spike whose few nodes all sit on favourable values; measured: order 4 gave -104695 where
+    order 16 gives -92674 on a noisy ball). So every
     ``QUADRATURE_CHECK_EVERY`` iterations the running round is checked too, with the looser
     ``QUADRATURE_RTOL_RUNNING``, and a failure ends it (:class:`QuadratureCheck`). A stage
     stopped by the iteration cap is checked too, with the running tolerance (it is still

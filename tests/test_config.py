@@ -164,21 +164,16 @@ def test_consistency_error_points_at_the_key(tmp_path):
     assert ":3:1: axis_start and axis_end coincide" in msg
 
 
-def test_a_length_or_an_axis_the_shape_does_not_take_is_refused(tmp_path):
-    # (each was ignored: a sphere given a radius, or a cylinder's axis, started from the click
-    # alone or from the image; a cylinder given radii used its radius)
-    msg = config_error(write(tmp_path, "shape: sphere\ncenter: [9, 9, 9]\nradius: 4\n"))
-    assert ":3:1: radius is a cylinder's; a sphere takes radii" in msg
-    msg = config_error(write(tmp_path, "shape: cylinder\naxis_start: [1, 2, 3]\n"
-                                       "axis_end: [1, 2, 9]\nradius: 2\nradii: [2, 2, 2]\n"))
-    assert ":5:1: radii are a sphere's semi-axes" in msg
-    msg = config_error(write(tmp_path, "shape: sphere\naxis_start: [1, 2, 3]\n"
-                                       "axis_end: [1, 2, 9]\n"))
-    assert ":2:1: axis_start and axis_end describe a cylinder's axis" in msg
-    # Without a shape, an axis (as a centerline) is a cylinder's.
+def test_an_axis_without_a_shape_is_a_cylinders(tmp_path):
+    # (as a centerline is: the axis and the radius were ignored, and a sphere ran from the image)
     config = load_segment_config(write(tmp_path, "axis_start: [1, 2, 3]\naxis_end: [1, 2, 9]\n"
                                                  "radius: 2\n"))
     assert config.shape == "cylinder"
+    # A sphere's leftovers under a cylinder on top, and a cylinder's radius alone, load as before.
+    base = load_segment_config(write(tmp_path, "center: [9, 9, 9]\nradii: [3, 3, 3]\n"))
+    top = base.replace(axis_start=[1, 2, 3], axis_end=[1, 2, 9], radius=2.0)
+    assert top.shape == "cylinder" and top.radii == [3.0, 3.0, 3.0]
+    assert load_segment_config(write(tmp_path, "radius: 13\n")).radius == 13.0
 
 
 def test_file_problems_are_config_errors_naming_the_file(tmp_path):
