@@ -385,7 +385,8 @@ POSITION_KEYS = ("center", "seed_point", "axis_start", "axis_end")
 PATH_KEYS = ("prior", "init", "centerline") + POSITION_KEYS
 # The options that describe a new initial shape, which a start from a saved snake (init) replaces.
 SHAPE_KEYS = ("center", "radii", "axis_start", "axis_end", "radius", "centerline")
-# The options only a cylinder takes: given without a shape, they imply it.
+# A cylinder's axis or centerline given without a shape implies it (its radius alone does not:
+# a YAML base or batch defaults may hold one for the shapes given on top).
 CYLINDER_KEYS = ("axis_start", "axis_end", "centerline")
 # The options a centerline (a cylinder along a polyline) replaces.
 CENTERLINE_EXCLUDES = ("center", "radii", "axis_start", "axis_end")
