@@ -1113,7 +1113,7 @@ def _centerline(surf: _Surface, spacing_mm: float) -> _Curve:
         shift = float(np.max(np.linalg.norm(guide.spline(s[steer]) - p[steer], axis=1)))
         if shift >= best_shift and best is not rings:
             break  # not converging: keep the best curve so far
-        best, best_shift = fit(use), shift
+        best, best_shift = (guide if steer is use else fit(use)), shift
         if shift <= CENTERLINE_TOL_MM:
             break
         s = _samples(guide.length, min(step, guide.length / (STATIONS_PER_INTERVAL * model.m2)))

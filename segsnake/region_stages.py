@@ -208,13 +208,16 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         run.take_counts(on)
         return model, Window.around(model, image.shape, sp, p.window_mm)
 
+    # A tube's rings go evenly along it after the growth and before each later round (a
+    # stage stretches what it grows); not a prior's, whose rings correspond to its reference's,
+    # nor a saved or edited surface's, whose control points are the user's.
+    respace = model.kind == "cylinder" and config.prior is None and not on_boundary
     report("region", 0.1)
     if not on_boundary:
         model, window = grow(model, window)
-        if model.kind == "cylinder" and config.prior is None:
-            # Now that the tube's calibre and ends are known: rings a radius apart along it
-            # (unless M2 is given), evenly (the growth has stretched the stretches it grew). A
-            # prior's rings are left as they are: they correspond to its reference's.
+        if respace:
+            # (now that the tube's calibre and ends are known: a ring a radius apart, unless M2
+            # is given)
             model = interpolate_tube(model, tube_rings(model) if config.m2 is None else model.m2)
         branching(model)
     report("two classes", 0.5)
@@ -288,9 +291,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         del density, shell
         if k < last:
             branching(model)
-            if model.kind == "cylinder" and config.prior is None and not on_boundary:
-                # (its rings evenly along it again: a round stretches what it grows too; not a
-                # saved or edited surface's, whose control points are the user's)
+            if respace:
                 model = interpolate_tube(model, model.m2)
             continue
         round_start, final_window = start, window
