@@ -18,6 +18,10 @@
  *   operations.
  * - winding_at: the winding number about given points (the faces above each, bucketed by the
  *   unit cells their projections' bounding boxes touch), where the penalty's gradient needs it.
+ * - edge_lengths, on_rays: the penalty's mesh gathered from its vertices and faces (its mean
+ *   edge, the rays' spacing; its corners in those units, shifted onto the rays), numpy's numbers
+ *   to the bit; numpy's gathers and small-axis reductions took 1.5 ms of the 2.5 a 21 x 21
+ *   surface's penalty cost.
  *
  * Plain C on Python buffers (no numpy headers); the GIL is released. The arithmetic is the
  * order the comments give, without contraction into fused multiply-adds (setup.py builds with
@@ -471,10 +475,182 @@ static PyObject *py_parity(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/* The mesh's vertex indices: a C-contiguous int64 (F, 3) array, each in [0, n). */
+static int get_faces(PyObject *obj, Py_buffer *view, Py_ssize_t n, Py_ssize_t *f)
+{
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return -1;
+    const char *fmt = view->format ? view->format : "B";
+    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
+        fmt++;
+    *f = view->len / (3 * (Py_ssize_t)sizeof(long long));
+    int ok = (strcmp(fmt, "q") == 0 || (strcmp(fmt, "l") == 0 && sizeof(long) == 8)) &&
+             view->itemsize == sizeof(long long) &&
+             view->len == 3 * *f * (Py_ssize_t)sizeof(long long);
+    const long long *t = (const long long *)view->buf;
+    for (Py_ssize_t k = 0; ok && k < 3 * *f; k++)
+        ok = t[k] >= 0 && t[k] < n;
+    if (!ok) {
+        PyBuffer_Release(view);
+        PyErr_SetString(PyExc_ValueError, "faces: expected a C-contiguous int64 (F, 3) array of "
+                                          "vertex indices");
+        return -1;
+    }
+    return 0;
+}
+
+/* The vertices' buffer: a C-contiguous float64 (n, 3) array of finite coordinates. */
+static int get_points(PyObject *obj, Py_buffer *view, Py_ssize_t *n)
+{
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return -1;
+    const char *fmt = view->format ? view->format : "B";
+    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
+        fmt++;
+    *n = view->len / (3 * (Py_ssize_t)sizeof(double));
+    int ok = strcmp(fmt, "d") == 0 && view->len == 3 * *n * (Py_ssize_t)sizeof(double);
+    const double *p = (const double *)view->buf;
+    for (Py_ssize_t k = 0; ok && k < 3 * *n; k++)
+        ok = isfinite(p[k]);
+    if (!ok) {
+        PyBuffer_Release(view);
+        PyErr_SetString(PyExc_ValueError, "points: expected a C-contiguous float64 (n, 3) array "
+                                          "of finite coordinates");
+        return -1;
+    }
+    return 0;
+}
+
+PyDoc_STRVAR(edge_lengths_doc,
+"edge_lengths(points, faces, out)\n\n"
+"The length of each face's edges into the C-contiguous float64 array out (F, 3): out[t, i] =\n"
+"|points[faces[t, i]] - points[faces[t, i - 1]]| (i - 1 taken mod 3), the square root of\n"
+"dx^2 + dy^2 + dz^2 summed in that order (numpy's norm of the same differences, to the bit).\n"
+"points: C-contiguous float64 (n, 3); faces: C-contiguous int64 (F, 3).");
+
+static PyObject *py_edge_lengths(PyObject *self, PyObject *args)
+{
+    PyObject *pts_obj, *faces_obj, *out_obj;
+    if (!PyArg_ParseTuple(args, "OOO", &pts_obj, &faces_obj, &out_obj))
+        return NULL;
+    Py_buffer pts = {0}, faces = {0}, out = {0};
+    Py_ssize_t n, f;
+    if (get_points(pts_obj, &pts, &n) < 0)
+        return NULL;
+    if (get_faces(faces_obj, &faces, n, &f) < 0) {
+        PyBuffer_Release(&pts);
+        return NULL;
+    }
+    if (PyObject_GetBuffer(out_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
+        PyBuffer_Release(&pts);
+        PyBuffer_Release(&faces);
+        return NULL;
+    }
+    const char *of = out.format ? out.format : "B";
+    if ((of[0] == '<' || of[0] == '=' || of[0] == '@') && of[1] != '\0')
+        of++;
+    if (strcmp(of, "d") != 0 || out.len != 3 * f * (Py_ssize_t)sizeof(double)) {
+        PyBuffer_Release(&pts);
+        PyBuffer_Release(&faces);
+        PyBuffer_Release(&out);
+        PyErr_SetString(PyExc_ValueError, "out: expected a C-contiguous float64 (F, 3) array");
+        return NULL;
+    }
+    const double *p = (const double *)pts.buf;
+    const long long *t = (const long long *)faces.buf;
+    double *o = (double *)out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t k = 0; k < f; k++)
+        for (int i = 0; i < 3; i++) {
+            const double *a = p + 3 * t[3 * k + i], *b = p + 3 * t[3 * k + (i + 2) % 3];
+            double dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
+            o[3 * k + i] = sqrt(dx * dx + dy * dy + dz * dz);
+        }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&pts);
+    PyBuffer_Release(&faces);
+    PyBuffer_Release(&out);
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(on_rays_doc,
+"on_rays(points, faces, h, out) -> (ox, oy)\n\n"
+"The faces' vertex coordinates in units of h, moved by whole units so that x, y >= 0 (the\n"
+"windings kernel's input), into the C-contiguous float64 array out (F, 3, 3): out[t, i] =\n"
+"points[faces[t, i]] / h - (ox, oy, 0), (ox, oy) the floor of the least x and y of the faces'\n"
+"vertices divided by h. points: C-contiguous float64 (n, 3); faces: C-contiguous int64 (F, 3);\n"
+"h > 0.");
+
+static PyObject *py_on_rays(PyObject *self, PyObject *args)
+{
+    PyObject *pts_obj, *faces_obj, *out_obj;
+    double h;
+    if (!PyArg_ParseTuple(args, "OOdO", &pts_obj, &faces_obj, &h, &out_obj))
+        return NULL;
+    if (!(h > 0) || !isfinite(h)) {
+        PyErr_SetString(PyExc_ValueError, "h: expected a finite number > 0");
+        return NULL;
+    }
+    Py_buffer pts = {0}, faces = {0}, out = {0};
+    Py_ssize_t n, f;
+    if (get_points(pts_obj, &pts, &n) < 0)
+        return NULL;
+    if (get_faces(faces_obj, &faces, n, &f) < 0) {
+        PyBuffer_Release(&pts);
+        return NULL;
+    }
+    if (PyObject_GetBuffer(out_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
+        PyBuffer_Release(&pts);
+        PyBuffer_Release(&faces);
+        return NULL;
+    }
+    const char *of = out.format ? out.format : "B";
+    if ((of[0] == '<' || of[0] == '=' || of[0] == '@') && of[1] != '\0')
+        of++;
+    if (strcmp(of, "d") != 0 || out.len != 9 * f * (Py_ssize_t)sizeof(double)) {
+        PyBuffer_Release(&pts);
+        PyBuffer_Release(&faces);
+        PyBuffer_Release(&out);
+        PyErr_SetString(PyExc_ValueError, "out: expected a C-contiguous float64 (F, 3, 3) array");
+        return NULL;
+    }
+    const double *p = (const double *)pts.buf;
+    const long long *t = (const long long *)faces.buf;
+    double *o = (double *)out.buf;
+    double lo[2] = {0.0, 0.0};
+    Py_BEGIN_ALLOW_THREADS
+    /* the scaled corners first, then the shift of their least x and y (both exact per value as
+     * numpy's corners / h - floor(min)) */
+    if (f > 0)
+        lo[0] = lo[1] = INFINITY;
+    for (Py_ssize_t k = 0; k < 3 * f; k++) {
+        const double *a = p + 3 * t[k];
+        for (int d = 0; d < 3; d++)
+            o[3 * k + d] = a[d] / h;
+        if (o[3 * k] < lo[0])
+            lo[0] = o[3 * k];
+        if (o[3 * k + 1] < lo[1])
+            lo[1] = o[3 * k + 1];
+    }
+    lo[0] = floor(lo[0]);
+    lo[1] = floor(lo[1]);
+    for (Py_ssize_t k = 0; k < 3 * f; k++) {
+        o[3 * k] -= lo[0];
+        o[3 * k + 1] -= lo[1];
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&pts);
+    PyBuffer_Release(&faces);
+    PyBuffer_Release(&out);
+    return Py_BuildValue("(dd)", lo[0], lo[1]);
+}
+
 static PyMethodDef methods[] = {
     {"windings", py_windings, METH_VARARGS, windings_doc},
     {"parity", py_parity, METH_VARARGS, parity_doc},
     {"winding_at", py_winding_at, METH_VARARGS, winding_at_doc},
+    {"edge_lengths", py_edge_lengths, METH_VARARGS, edge_lengths_doc},
+    {"on_rays", py_on_rays, METH_VARARGS, on_rays_doc},
     {NULL, NULL, 0, NULL},
 };
 

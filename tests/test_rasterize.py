@@ -191,3 +191,38 @@ def test_winding_at_counts_the_faces_above_each_point_and_refuses_bad_buffers():
     with pytest.raises(ValueError, match="too many cells"):
         winding_at(corners, np.array([[0.0, 0, 0], [2.0 ** 32, 2.0 ** 32, 0]]),
                    np.zeros(2, dtype=np.int64))
+
+
+def test_the_compiled_edge_lengths_and_rays_are_numpys_to_the_bit_and_refuse_bad_buffers():
+    # SelfCrossing's mesh spacing h and the windings kernel's input come from these two
+    # compiled gathers; they must give numpy's numbers exactly (h decides the rays, so a last
+    # bit of difference could move a crossing's volume).
+    from segsnake._scan import edge_lengths, on_rays
+
+    rng = np.random.default_rng(3)
+    ball = SphereModel.ellipsoid((-7.5, 20, 3), (10, 6, 8))
+    bumpy = ball.with_params(ball.params + rng.normal(0, 2.0, ball.params.shape))
+    points, tris = bumpy.triangles(33, 21)
+    tris = np.ascontiguousarray(tris)
+    corners = points[tris]
+    lengths = np.empty(tris.shape)
+    edge_lengths(points, tris, lengths)
+    assert np.array_equal(lengths, np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1))
+    h = 0.5 * float(lengths.mean())
+    rays = np.empty(corners.shape)
+    ox, oy = on_rays(points, tris, h, rays)
+    scaled = corners / h
+    origin = np.floor(scaled.reshape(-1, 3).min(axis=0))
+    assert (ox, oy) == (origin[0], origin[1]) and origin[0] < 0  # (x reaches below 0)
+    assert np.array_equal(rays, scaled - [ox, oy, 0.0])
+    assert rays[..., :2].min() >= 0 and rays[..., :2].min() < 1
+    with pytest.raises(ValueError, match="faces"):
+        edge_lengths(points, tris.astype(np.int32), lengths)
+    with pytest.raises(ValueError, match="faces"):
+        on_rays(points, np.where(tris == 0, len(points), tris), h, rays)  # an index past the end
+    with pytest.raises(ValueError, match="points"):
+        edge_lengths(np.where(points == points[0], np.nan, points), tris, lengths)
+    with pytest.raises(ValueError, match="out"):
+        on_rays(points, tris, h, lengths)
+    with pytest.raises(ValueError, match="h"):
+        on_rays(points, tris, 0.0, rays)
