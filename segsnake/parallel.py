@@ -8,10 +8,16 @@ one thread, so the number of threads never changes a result.
 The number of threads is, in order: :func:`set_threads`, the environment variable
 ``SEGSNAKE_NUM_THREADS``, or the CPUs this process may run on (as ITK does). ``segsnake batch``
 divides the CPUs between its worker processes.
+
+The BLAS library numpy and scipy call (the optimizer's Cholesky solves, the metric's
+contractions) keeps its own threads to one while a segmentation runs
+(:func:`one_blas_thread`): its threads split a product differently on another number of
+cores, which changed results, and they competed with these.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor, wait
@@ -23,7 +29,7 @@ from segsnake import cancel
 from segsnake.errors import ConfigError
 
 __all__ = ["threads", "set_threads", "thread_map", "pieces", "slabs", "gaussian_filter",
-           "spline_filter", "ENV"]
+           "spline_filter", "one_blas_thread", "ENV"]
 
 ENV = "SEGSNAKE_NUM_THREADS"
 
@@ -66,6 +72,29 @@ def set_threads(n: int | None) -> None:
     if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
         raise ValueError(f"the number of threads must be a positive integer, got {n!r}")
     _requested = n
+
+
+def one_blas_thread(fn: Callable[..., R]) -> Callable[..., R]:
+    """``fn`` with the BLAS library's threads limited to one while it runs (threadpoolctl; the
+    limit before is restored after).
+
+    OpenBLAS splits a product or a triangular solve between as many threads as the machine
+    has cores, and the split changes its rounding: the Colin27 brain's energy read -1112044.45
+    with two BLAS threads and -1112105.47 with one, its mask 1 855 352 and 1 855 077 voxels.
+    A result then depended on the machine's core count, which :func:`thread_map`'s blocks
+    never let it do. Its threads also competed with these for the cores: the brain without a
+    click took 20.0 s with two BLAS threads and 14.8 s with one (2 cores; docs/benchmarks.md,
+    session 27). The matrices are small (at most a few thousand rows: a finer grid's metric),
+    so one thread loses little.
+    """
+    @functools.wraps(fn)
+    def limited(*args, **kwargs):
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+
+    return limited
 
 
 def thread_map(fn: Callable[[T], R], items: Iterable[T], *, join: bool = False) -> list[R]:

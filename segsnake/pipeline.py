@@ -28,6 +28,7 @@ from scipy import ndimage
 
 from segsnake.errors import ConfigError, SegmentationError
 from segsnake.moments import mask_moments
+from segsnake.parallel import one_blas_thread
 from segsnake.surfaces import CylinderModel, SphereModel, SplineSurface, model_from_dict
 
 __all__ = ["SegmentResult", "segment_volume", "initial_model", "auto_init", "region_energy",
@@ -210,6 +211,7 @@ def perpendicular_spacing(spacing: Sequence[float], axis: Sequence[float]) -> fl
     return float(np.sqrt(np.sum((1 - a * a) * s * s) / 2))
 
 
+@one_blas_thread
 def segment_volume(image: NDArray, spacing: Sequence[float], config, *,
                    index_from_world: Callable[[NDArray], NDArray] | None = None,
                    progress: Progress | None = None, extra_energy=None,

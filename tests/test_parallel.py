@@ -177,3 +177,38 @@ def test_pieces_are_few_equal_and_cover_the_range(n, size):
     lengths = [s.stop - s.start for s in got]
     assert max(lengths) <= size and max(lengths) - min(lengths) <= 1
     assert [i for s in got for i in range(s.start, s.stop)] == list(range(n))
+
+
+def _blas_threads() -> set[int]:
+    from threadpoolctl import threadpool_info
+
+    return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+
+def test_a_segmentation_runs_blas_in_one_thread_and_restores_it_after():
+    # OpenBLAS splits products by the core count and its rounding follows the split: while a
+    # segmentation runs it keeps to one thread (parallel.one_blas_thread), and the limit the
+    # caller had comes back after, also after an error.
+    from threadpoolctl import threadpool_limits
+
+    from segsnake.config import SegmentConfig
+    from segsnake.phantoms import make_phantom
+    from segsnake.pipeline import segment_volume
+
+    ph = make_phantom("blob", shape=(40, 40, 40), seed=0, noise=0.05)
+    seen = []
+    config = SegmentConfig.from_mapping({**ph.init, "coarse_to_fine": False})
+    with threadpool_limits(limits=2, user_api="blas"):
+        if _blas_threads() != {2}:
+            pytest.skip("the BLAS here does not take two threads")
+        segment_volume(ph.image, ph.spacing, config,
+                       progress=lambda stage, frac: seen.append(_blas_threads()))
+        assert seen and all(s == {1} for s in seen)
+        assert _blas_threads() == {2}
+
+        def stop(stage, frac):
+            raise RuntimeError("stopped")
+
+        with pytest.raises(RuntimeError, match="stopped"):
+            segment_volume(ph.image, ph.spacing, config, progress=stop)
+        assert _blas_threads() == {2}
