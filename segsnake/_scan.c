@@ -313,16 +313,34 @@ static int winding_points(const double *tri, Py_ssize_t f, const double *pts, Py
     return 0;
 }
 
+/* A buffer's struct format without its byte-order prefix ("d": float64, "q": int64). */
+static const char *bare_format(const Py_buffer *view)
+{
+    const char *fmt = view->format ? view->format : "B";
+    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
+        fmt++;
+    return fmt;
+}
+
+static int is_float64(const Py_buffer *view)
+{
+    return strcmp(bare_format(view), "d") == 0 && view->itemsize == sizeof(double);
+}
+
+static int is_int64(const Py_buffer *view)
+{
+    const char *fmt = bare_format(view);
+    return (strcmp(fmt, "q") == 0 || (strcmp(fmt, "l") == 0 && sizeof(long) == 8)) &&
+           view->itemsize == sizeof(long long);
+}
+
 /* The triangles' buffer: a C-contiguous float64 (F, 3, 3) array of finite coordinates. */
 static int get_triangles(PyObject *obj, Py_buffer *view, Py_ssize_t *f)
 {
     if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
         return -1;
-    const char *fmt = view->format ? view->format : "B";
-    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
-        fmt++;
     *f = view->len / (9 * (Py_ssize_t)sizeof(double));
-    if (strcmp(fmt, "d") != 0 || view->len != 9 * *f * (Py_ssize_t)sizeof(double)) {
+    if (!is_float64(view) || view->len != 9 * *f * (Py_ssize_t)sizeof(double)) {
         PyBuffer_Release(view);
         PyErr_SetString(PyExc_ValueError, "triangles: expected a C-contiguous float64 (F, 3, 3) array");
         return -1;
@@ -399,15 +417,9 @@ static PyObject *py_winding_at(PyObject *self, PyObject *args)
         PyBuffer_Release(&pts);
         return NULL;
     }
-    const char *pf = pts.format ? pts.format : "B", *of = out.format ? out.format : "B";
-    if ((pf[0] == '<' || pf[0] == '=' || pf[0] == '@') && pf[1] != '\0')
-        pf++;
-    if ((of[0] == '<' || of[0] == '=' || of[0] == '@') && of[1] != '\0')
-        of++;
     Py_ssize_t n = pts.len / (3 * (Py_ssize_t)sizeof(double));
-    int ok = strcmp(pf, "d") == 0 && pts.len == 3 * n * (Py_ssize_t)sizeof(double) &&
-             (strcmp(of, "q") == 0 || (strcmp(of, "l") == 0 && sizeof(long) == 8)) &&
-             out.itemsize == sizeof(long long) && out.len == n * (Py_ssize_t)sizeof(long long);
+    int ok = is_float64(&pts) && pts.len == 3 * n * (Py_ssize_t)sizeof(double) &&
+             is_int64(&out) && out.len == n * (Py_ssize_t)sizeof(long long);
     const double *p = (const double *)pts.buf;
     for (Py_ssize_t k = 0; ok && k < 3 * n; k++)
         ok = isfinite(p[k]);
@@ -475,47 +487,66 @@ static PyObject *py_parity(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
-/* The mesh's vertex indices: a C-contiguous int64 (F, 3) array, each in [0, n). */
-static int get_faces(PyObject *obj, Py_buffer *view, Py_ssize_t n, Py_ssize_t *f)
+/* Do two buffers share memory? (an output over an input would be overwritten while read) */
+static int overlap(const Py_buffer *a, const Py_buffer *b)
 {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+    const char *a0 = (const char *)a->buf, *b0 = (const char *)b->buf;
+    return a->len > 0 && b->len > 0 && a0 < b0 + b->len && b0 < a0 + a->len;
+}
+
+/* The mesh: vertices, a C-contiguous float64 (n, 3) array of finite coordinates, and faces, a
+ * C-contiguous int64 (F, 3) array (its indices are checked where they are read: another thread
+ * may write the array while the GIL is released); and `out`, a C-contiguous writable float64
+ * array of `per_face` values a face that shares no memory with either. 0, or -1 with an
+ * exception set and nothing held. */
+static int get_mesh(PyObject *pts_obj, PyObject *faces_obj, PyObject *out_obj, Py_ssize_t per_face,
+                    Py_buffer *pts, Py_buffer *faces, Py_buffer *out, Py_ssize_t *n, Py_ssize_t *f)
+{
+    if (PyObject_GetBuffer(pts_obj, pts, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
         return -1;
-    const char *fmt = view->format ? view->format : "B";
-    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
-        fmt++;
-    *f = view->len / (3 * (Py_ssize_t)sizeof(long long));
-    int ok = (strcmp(fmt, "q") == 0 || (strcmp(fmt, "l") == 0 && sizeof(long) == 8)) &&
-             view->itemsize == sizeof(long long) &&
-             view->len == 3 * *f * (Py_ssize_t)sizeof(long long);
-    const long long *t = (const long long *)view->buf;
-    for (Py_ssize_t k = 0; ok && k < 3 * *f; k++)
-        ok = t[k] >= 0 && t[k] < n;
-    if (!ok) {
-        PyBuffer_Release(view);
-        PyErr_SetString(PyExc_ValueError, "faces: expected a C-contiguous int64 (F, 3) array of "
-                                          "vertex indices");
+    if (PyObject_GetBuffer(faces_obj, faces, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        PyBuffer_Release(pts);
+        return -1;
+    }
+    if (PyObject_GetBuffer(out_obj, out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
+        PyBuffer_Release(pts);
+        PyBuffer_Release(faces);
+        return -1;
+    }
+    *n = pts->len / (3 * (Py_ssize_t)sizeof(double));
+    *f = faces->len / (3 * (Py_ssize_t)sizeof(long long));
+    const char *error = NULL;
+    const double *p = (const double *)pts->buf;
+    if (!is_float64(pts) || pts->len != 3 * *n * (Py_ssize_t)sizeof(double))
+        error = "points: expected a C-contiguous float64 (n, 3) array";
+    for (Py_ssize_t k = 0; !error && k < 3 * *n; k++)
+        if (!isfinite(p[k]))
+            error = "points: coordinates must be finite";
+    if (!error && (!is_int64(faces) || faces->len != 3 * *f * (Py_ssize_t)sizeof(long long)))
+        error = "faces: expected a C-contiguous int64 (F, 3) array";
+    if (!error && (!is_float64(out) || out->len != per_face * *f * (Py_ssize_t)sizeof(double)))
+        error = per_face == 3 ? "out: expected a C-contiguous float64 (F, 3) array"
+                              : "out: expected a C-contiguous float64 (F, 3, 3) array";
+    if (!error && (overlap(out, pts) || overlap(out, faces)))
+        error = "out: shares memory with points or faces";
+    if (error) {
+        PyBuffer_Release(pts);
+        PyBuffer_Release(faces);
+        PyBuffer_Release(out);
+        PyErr_SetString(PyExc_ValueError, error);
         return -1;
     }
     return 0;
 }
 
-/* The vertices' buffer: a C-contiguous float64 (n, 3) array of finite coordinates. */
-static int get_points(PyObject *obj, Py_buffer *view, Py_ssize_t *n)
+/* Releases get_mesh's buffers: 0, or -1 with an exception set when a face index was bad. */
+static int mesh_done(Py_buffer *pts, Py_buffer *faces, Py_buffer *out, int bad_index)
 {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
-        return -1;
-    const char *fmt = view->format ? view->format : "B";
-    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
-        fmt++;
-    *n = view->len / (3 * (Py_ssize_t)sizeof(double));
-    int ok = strcmp(fmt, "d") == 0 && view->len == 3 * *n * (Py_ssize_t)sizeof(double);
-    const double *p = (const double *)view->buf;
-    for (Py_ssize_t k = 0; ok && k < 3 * *n; k++)
-        ok = isfinite(p[k]);
-    if (!ok) {
-        PyBuffer_Release(view);
-        PyErr_SetString(PyExc_ValueError, "points: expected a C-contiguous float64 (n, 3) array "
-                                          "of finite coordinates");
+    PyBuffer_Release(pts);
+    PyBuffer_Release(faces);
+    PyBuffer_Release(out);
+    if (bad_index) {
+        PyErr_SetString(PyExc_ValueError, "faces: vertex indices must lie in [0, n)");
         return -1;
     }
     return 0;
@@ -526,7 +557,7 @@ PyDoc_STRVAR(edge_lengths_doc,
 "The length of each face's edges into the C-contiguous float64 array out (F, 3): out[t, i] =\n"
 "|points[faces[t, i]] - points[faces[t, i - 1]]| (i - 1 taken mod 3), the square root of\n"
 "dx^2 + dy^2 + dz^2 summed in that order (numpy's norm of the same differences, to the bit).\n"
-"points: C-contiguous float64 (n, 3); faces: C-contiguous int64 (F, 3).");
+"points: C-contiguous float64 (n, 3), finite; faces: C-contiguous int64 (F, 3), each in [0, n).");
 
 static PyObject *py_edge_lengths(PyObject *self, PyObject *args)
 {
@@ -535,41 +566,27 @@ static PyObject *py_edge_lengths(PyObject *self, PyObject *args)
         return NULL;
     Py_buffer pts = {0}, faces = {0}, out = {0};
     Py_ssize_t n, f;
-    if (get_points(pts_obj, &pts, &n) < 0)
+    if (get_mesh(pts_obj, faces_obj, out_obj, 3, &pts, &faces, &out, &n, &f) < 0)
         return NULL;
-    if (get_faces(faces_obj, &faces, n, &f) < 0) {
-        PyBuffer_Release(&pts);
-        return NULL;
-    }
-    if (PyObject_GetBuffer(out_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
-        PyBuffer_Release(&pts);
-        PyBuffer_Release(&faces);
-        return NULL;
-    }
-    const char *of = out.format ? out.format : "B";
-    if ((of[0] == '<' || of[0] == '=' || of[0] == '@') && of[1] != '\0')
-        of++;
-    if (strcmp(of, "d") != 0 || out.len != 3 * f * (Py_ssize_t)sizeof(double)) {
-        PyBuffer_Release(&pts);
-        PyBuffer_Release(&faces);
-        PyBuffer_Release(&out);
-        PyErr_SetString(PyExc_ValueError, "out: expected a C-contiguous float64 (F, 3) array");
-        return NULL;
-    }
     const double *p = (const double *)pts.buf;
     const long long *t = (const long long *)faces.buf;
     double *o = (double *)out.buf;
+    int bad = 0;
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t k = 0; k < f; k++)
+    for (Py_ssize_t k = 0; k < f && !bad; k++)
         for (int i = 0; i < 3; i++) {
-            const double *a = p + 3 * t[3 * k + i], *b = p + 3 * t[3 * k + (i + 2) % 3];
+            long long ia = t[3 * k + i], ib = t[3 * k + (i + 2) % 3];
+            if (ia < 0 || ia >= n || ib < 0 || ib >= n) {
+                bad = 1;
+                break;
+            }
+            const double *a = p + 3 * ia, *b = p + 3 * ib;
             double dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
             o[3 * k + i] = sqrt(dx * dx + dy * dy + dz * dz);
         }
     Py_END_ALLOW_THREADS
-    PyBuffer_Release(&pts);
-    PyBuffer_Release(&faces);
-    PyBuffer_Release(&out);
+    if (mesh_done(&pts, &faces, &out, bad) < 0)
+        return NULL;
     Py_RETURN_NONE;
 }
 
@@ -578,8 +595,8 @@ PyDoc_STRVAR(on_rays_doc,
 "The faces' vertex coordinates in units of h, moved by whole units so that x, y >= 0 (the\n"
 "windings kernel's input), into the C-contiguous float64 array out (F, 3, 3): out[t, i] =\n"
 "points[faces[t, i]] / h - (ox, oy, 0), (ox, oy) the floor of the least x and y of the faces'\n"
-"vertices divided by h. points: C-contiguous float64 (n, 3); faces: C-contiguous int64 (F, 3);\n"
-"h > 0.");
+"vertices divided by h ((0, 0) without faces). points: C-contiguous float64 (n, 3), finite;\n"
+"faces: C-contiguous int64 (F, 3), each in [0, n); h > 0.");
 
 static PyObject *py_on_rays(PyObject *self, PyObject *args)
 {
@@ -593,37 +610,23 @@ static PyObject *py_on_rays(PyObject *self, PyObject *args)
     }
     Py_buffer pts = {0}, faces = {0}, out = {0};
     Py_ssize_t n, f;
-    if (get_points(pts_obj, &pts, &n) < 0)
+    if (get_mesh(pts_obj, faces_obj, out_obj, 9, &pts, &faces, &out, &n, &f) < 0)
         return NULL;
-    if (get_faces(faces_obj, &faces, n, &f) < 0) {
-        PyBuffer_Release(&pts);
-        return NULL;
-    }
-    if (PyObject_GetBuffer(out_obj, &out, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
-        PyBuffer_Release(&pts);
-        PyBuffer_Release(&faces);
-        return NULL;
-    }
-    const char *of = out.format ? out.format : "B";
-    if ((of[0] == '<' || of[0] == '=' || of[0] == '@') && of[1] != '\0')
-        of++;
-    if (strcmp(of, "d") != 0 || out.len != 9 * f * (Py_ssize_t)sizeof(double)) {
-        PyBuffer_Release(&pts);
-        PyBuffer_Release(&faces);
-        PyBuffer_Release(&out);
-        PyErr_SetString(PyExc_ValueError, "out: expected a C-contiguous float64 (F, 3, 3) array");
-        return NULL;
-    }
     const double *p = (const double *)pts.buf;
     const long long *t = (const long long *)faces.buf;
     double *o = (double *)out.buf;
     double lo[2] = {0.0, 0.0};
+    int bad = 0;
     Py_BEGIN_ALLOW_THREADS
-    /* the scaled corners first, then the shift of their least x and y (both exact per value as
+    /* the scaled corners first, then the shift of their least x and y (each value exactly
      * numpy's corners / h - floor(min)) */
     if (f > 0)
         lo[0] = lo[1] = INFINITY;
     for (Py_ssize_t k = 0; k < 3 * f; k++) {
+        if (t[k] < 0 || t[k] >= n) {
+            bad = 1;
+            break;
+        }
         const double *a = p + 3 * t[k];
         for (int d = 0; d < 3; d++)
             o[3 * k + d] = a[d] / h;
@@ -632,16 +635,17 @@ static PyObject *py_on_rays(PyObject *self, PyObject *args)
         if (o[3 * k + 1] < lo[1])
             lo[1] = o[3 * k + 1];
     }
-    lo[0] = floor(lo[0]);
-    lo[1] = floor(lo[1]);
-    for (Py_ssize_t k = 0; k < 3 * f; k++) {
-        o[3 * k] -= lo[0];
-        o[3 * k + 1] -= lo[1];
+    if (!bad) {
+        lo[0] = floor(lo[0]);
+        lo[1] = floor(lo[1]);
+        for (Py_ssize_t k = 0; k < 3 * f; k++) {
+            o[3 * k] -= lo[0];
+            o[3 * k + 1] -= lo[1];
+        }
     }
     Py_END_ALLOW_THREADS
-    PyBuffer_Release(&pts);
-    PyBuffer_Release(&faces);
-    PyBuffer_Release(&out);
+    if (mesh_done(&pts, &faces, &out, bad) < 0)
+        return NULL;
     return Py_BuildValue("(dd)", lo[0], lo[1]);
 }
 

@@ -135,8 +135,9 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
     chol = cho_factor(metric)
 
     def precondition(v: NDArray) -> NDArray:
-        # (finite: the metric is, and fun refuses a non-finite gradient; scipy's check of the
-        # factor on every call cost a third of the solve at 29 x 29)
+        # (both finite: cho_factor checked the metric, and every vector solved for is built from
+        # gradients fun checked; scipy's check of them on every call cost a third of the solve
+        # at 29 x 29)
         return cho_solve(chol, v, check_finite=False)
 
     x = model.params.copy()

@@ -40,6 +40,10 @@ _lock = threading.Lock()
 _requested: int | None = None
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+# one_blas_thread's limit, shared by the calls running at once
+_blas_lock = threading.Lock()
+_blas_depth = 0
+_blas_limits = None
 
 
 def _available_cpus() -> int:
@@ -75,24 +79,40 @@ def set_threads(n: int | None) -> None:
 
 
 def one_blas_thread(fn: Callable[..., R]) -> Callable[..., R]:
-    """``fn`` with the BLAS library's threads limited to one while it runs (threadpoolctl; the
-    limit before is restored after).
+    """``fn`` with the BLAS libraries' threads (numpy's and scipy's) limited to one while it
+    runs (threadpoolctl), and the limits they had before restored after.
 
     OpenBLAS splits a product or a triangular solve between as many threads as the machine
     has cores, and the split changes its rounding: the Colin27 brain's energy read -1112044.45
     with two BLAS threads and -1112105.47 with one, its mask 1 855 352 and 1 855 077 voxels.
     A result then depended on the machine's core count, which :func:`thread_map`'s blocks
     never let it do. Its threads also competed with these for the cores: the brain without a
-    click took 20.0 s with two BLAS threads and 14.8 s with one (2 cores; docs/benchmarks.md,
-    session 27). The matrices are small (at most a few thousand rows: a finer grid's metric),
-    so one thread loses little.
+    click took 21.7 s with two BLAS threads and 16.7 s with one (2 cores, medians of three
+    alternating runs; docs/benchmarks.md, session 27). The matrices are small (at most a few
+    thousand rows: a finer grid's metric), so one thread loses little.
+
+    The limit is the process's: calls that overlap in threads share it, set by the first to
+    begin and restored by the last to end (threadpoolctl's own limits do not nest across
+    threads); BLAS called from other threads meanwhile runs in one thread too.
     """
     @functools.wraps(fn)
     def limited(*args, **kwargs):
-        from threadpoolctl import threadpool_limits
+        global _blas_depth, _blas_limits
+        with _blas_lock:
+            if _blas_depth == 0:
+                import scipy.linalg  # noqa: F401  (its BLAS, loaded before the limit is set)
+                from threadpoolctl import threadpool_limits
 
-        with threadpool_limits(limits=1, user_api="blas"):
+                _blas_limits = threadpool_limits(limits=1, user_api="blas")
+            _blas_depth += 1
+        try:
             return fn(*args, **kwargs)
+        finally:
+            with _blas_lock:
+                _blas_depth -= 1
+                if _blas_depth == 0:
+                    _blas_limits.restore_original_limits()
+                    _blas_limits = None
 
     return limited
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from segsnake import __version__, outdir
 from segsnake.allocator import trim
+from segsnake.parallel import one_blas_thread
 from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
 from segsnake.centerline_files import read_centerline, resolve_centerline
 from segsnake.markups import resolve_markups
@@ -206,6 +207,9 @@ def _with_image_name(exc: Exception, image_path: str) -> None:
         exc.args = (f"{image_path}: {msg}",)
 
 
+# (BLAS in one thread from the start: a saved snake resampled to another size before
+# segment_volume runs changed with the number of BLAS threads too, by 2.5e-12 mm)
+@one_blas_thread
 def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | None = None,
                  truth_label: int | None = None, truth_label_option: str = "a truth label",
                  overwrite: bool = False, wait: bool = False,

@@ -216,10 +216,16 @@ def test_the_compiled_edge_lengths_and_rays_are_numpys_to_the_bit_and_refuse_bad
     assert (ox, oy) == (origin[0], origin[1]) and origin[0] < 0  # (x reaches below 0)
     assert np.array_equal(rays, scaled - [ox, oy, 0.0])
     assert rays[..., :2].min() >= 0 and rays[..., :2].min() < 1
+    assert on_rays(points, tris[:0], h, rays[:0]) == (0.0, 0.0)  # no faces: no shift
     with pytest.raises(ValueError, match="faces"):
         edge_lengths(points, tris.astype(np.int32), lengths)
-    with pytest.raises(ValueError, match="faces"):
-        on_rays(points, np.where(tris == 0, len(points), tris), h, rays)  # an index past the end
+    for bad in (len(points), -1):  # an index past either end (read where it is used)
+        with pytest.raises(ValueError, match="faces"):
+            on_rays(points, np.where(tris == 0, bad, tris), h, rays)
+        with pytest.raises(ValueError, match="faces"):
+            edge_lengths(points, np.where(tris == 0, bad, tris), lengths)
+    with pytest.raises(ValueError, match="shares memory"):  # would overwrite what it reads
+        edge_lengths(points, tris, tris.view(np.float64))
     with pytest.raises(ValueError, match="points"):
         edge_lengths(np.where(points == points[0], np.nan, points), tris, lengths)
     with pytest.raises(ValueError, match="out"):
