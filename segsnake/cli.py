@@ -194,7 +194,11 @@ def _main(argv: list[str], parser: argparse.ArgumentParser | None, state: dict[s
             raise
         state.update(command=args.command, json=bool(getattr(args, "json", False)),
                      debug=args.debug)
-        code = int(args.func(args) or 0)
+        # (BLAS in one thread for every command: fits, shape models and segmentations alike give
+        # the same numbers on any number of cores; imported here, after the parse, with numpy)
+        from segsnake.parallel import one_blas_thread
+
+        code = int(one_blas_thread(args.func)(args) or 0)
         cancel.check()  # an interrupt a library destructor swallowed still ends the run as one
         sys.stdout.flush()  # here, where a closed pipe can still be handled
         return code

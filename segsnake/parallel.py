@@ -10,8 +10,8 @@ The number of threads is, in order: :func:`set_threads`, the environment variabl
 divides the CPUs between its worker processes.
 
 The BLAS library numpy and scipy call (the optimizer's Cholesky solves, the metric's
-contractions) keeps its own threads to one while a segmentation runs
-(:func:`one_blas_thread`): its threads split a product differently on another number of
+contractions) keeps its own threads to one while a segmentation or any ``segsnake`` command
+runs (:func:`one_blas_thread`): its threads split a product differently on another number of
 cores, which changed results, and they competed with these.
 """
 

@@ -221,3 +221,24 @@ def test_label_map_warning_reaches_stderr_even_when_quiet(ball, tmp_path, capsys
     assert err == (f"segsnake evaluate: warning: {atlas}: holds 2 different non-zero values (4, 9):"
                    " a label map? Every non-zero voxel counts as the truth; compare with one "
                    "structure with --label N\n")
+
+
+def test_every_command_runs_blas_in_one_thread():
+    """Not only segment: a command's BLAS keeps to one thread (segsnake.parallel.one_blas_thread),
+    so that a fit or a shape model gives the same numbers on any number of cores."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+    before = blas_threads()
+    if before == {1}:
+        pytest.skip("the BLAS here runs one thread already")
+    parser = argparse.ArgumentParser(prog="segsnake")
+    parser.add_argument("--debug", action="store_true")
+    sub = parser.add_subparsers(dest="command")
+    probe = sub.add_parser("probe")
+    seen = []
+    probe.set_defaults(func=lambda args: seen.append(blas_threads()))
+    assert main(["probe"], parser=parser) == 0
+    assert seen == [{1}] and blas_threads() == before
