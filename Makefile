@@ -9,8 +9,9 @@ $(PY):
 	$(PY) -m pip install --quiet --upgrade pip
 
 # Reinstalled when the build inputs change, or when a compiled kernel is missing.
-$(STAMP): pyproject.toml setup.py segsnake/_sampling.c segsnake/_scan.c \
-		$(if $(and $(wildcard segsnake/_sampling*.so),$(wildcard segsnake/_scan*.so)),,FORCE) | $(PY)
+$(STAMP): pyproject.toml setup.py segsnake/_sampling.c segsnake/_scan.c segsnake/_flux.c \
+		$(if $(and $(wildcard segsnake/_sampling*.so),$(wildcard segsnake/_scan*.so),\
+		$(wildcard segsnake/_flux*.so)),,FORCE) | $(PY)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 

@@ -59,13 +59,26 @@ def flux_integrand_grads(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weig
     ``n_x = orientation * (y_v z_u - z_v y_u)``; all arrays are on the quadrature grid
     ``(nu, nv[, 3])``.
     """
-    o = float(orientation)
-    value, nx = flux_value(G, su, sv, weights, orientation)
-    wG = weights * G * o
-    g_sigma = (weights * nx)[..., None] * dG
-    g_u = np.stack([np.zeros_like(wG), -wG * sv[..., 2], wG * sv[..., 1]], axis=-1)
-    g_v = np.stack([np.zeros_like(wG), wG * su[..., 2], -wG * su[..., 1]], axis=-1)
-    return value, g_sigma, g_u, g_v
+    value, g_stack, g_v = _integrand_stacked(G, dG, su, sv, weights, orientation)
+    return value, g_stack[0], g_stack[1], g_v
+
+
+def _integrand_stacked(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weights: NDArray,
+                       orientation: int) -> tuple[float, NDArray, NDArray]:
+    # flux_integrand_grads with the derivatives on sigma and sigma_u stacked in one array
+    # (2, nu, nv, 3), as GridBasis.adjoint_stacked takes them. One compiled pass over the nodes
+    # (segsnake/_flux.c), the same numbers as numpy's products; the sum is numpy's.
+    from segsnake._flux import integrand
+
+    grid = np.shape(G)
+    c = np.ascontiguousarray
+    term = np.empty(grid)
+    g_stack = np.empty((2, *grid, 3))
+    g_v = np.empty((*grid, 3))
+    integrand(c(G, dtype=np.float64), c(dG, dtype=np.float64), c(su, dtype=np.float64),
+              c(sv, dtype=np.float64), c(np.broadcast_to(weights, grid), dtype=np.float64),
+              float(orientation), term, g_stack[0], g_stack[1], g_v)
+    return float(np.sum(term)), g_stack, g_v
 
 
 @dataclass
@@ -117,8 +130,9 @@ class FluxTerm:
 
     def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
         C, su, sv, G, dG = self._on_nodes(params)
-        value, g, gu, gv = flux_integrand_grads(G, dG, su, sv, self.weights, self.model.orientation)
-        grad_C = self.basis.adjoint(g, gu, gv)
+        value, g_stack, g_v = _integrand_stacked(G, dG, su, sv, self.weights,
+                                                 self.model.orientation)
+        grad_C = self.basis.adjoint_stacked(g_stack, g_v)
         if self.caps is not None:
             value += self.caps.flux(C, self.sampler, grad_C)
         grad = self.model.grid_gradient_to_params(grad_C)

@@ -79,14 +79,17 @@ class GridBasis:
         object.__setattr__(self, "_bu_t", self.Bu.T.tocsr())
 
     def evaluate(self, C: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        """sigma, sigma_u, sigma_v, each ``(nu, nv, 3)``, from a full grid ``C (M1, L, 3)``."""
+        """sigma, sigma_u, sigma_v, each ``(nu, nv, 3)`` and C-contiguous, from a full grid
+        ``C (M1, L, 3)``."""
         m1, n_l, _ = C.shape
         nu, nv = self.Bu.shape[0], self.Bv.shape[0]
-        # [Bv; dBv] C per coordinate, then [Bu; dBu] times [P, dP]: (2, nu, 2, nv, 3).
-        P = self._stack_v @ C.transpose(1, 0, 2).reshape(n_l, m1 * 3)  # (2 nv, M1 * 3)
-        P = P.reshape(2, nv, m1, 3).transpose(2, 0, 1, 3).reshape(m1, 2 * nv * 3)
-        Q = (self._stack_u @ P).reshape(2, nu, 2, nv, 3)
-        return Q[0, :, 0], Q[1, :, 0], Q[0, :, 1]
+        # [Bv; dBv] C per coordinate: (2, nv, M1, 3), then [Bu; dBu] times Bv C (sigma and
+        # sigma_u in one contiguous block each) and Bu times dBv C (sigma_v).
+        P = (self._stack_v @ C.transpose(1, 0, 2).reshape(n_l, m1 * 3)).reshape(2, nv, m1, 3)
+        along = P[0].transpose(1, 0, 2).reshape(m1, nv * 3)
+        Q = (self._stack_u @ along).reshape(2, nu, nv, 3)
+        sv = (self.Bu @ P[1].transpose(1, 0, 2).reshape(m1, nv * 3)).reshape(nu, nv, 3)
+        return Q[0], Q[1], sv
 
     def positions(self, C: NDArray) -> NDArray:
         """sigma alone, ``(nu, nv, 3)``: the same products as :meth:`evaluate`'s first block
@@ -103,11 +106,14 @@ class GridBasis:
 
         The transpose of :meth:`evaluate`: ``dE/dC = Bu^T g Bv + dBu^T g_u Bv + Bu^T g_v dBv``.
         """
+        return self.adjoint_stacked(np.stack([g, g_u]), g_v)
+
+    def adjoint_stacked(self, g_stack: NDArray, g_v: NDArray) -> NDArray:
+        """:meth:`adjoint` with the gradients on sigma and sigma_u stacked, ``(2, nu, nv, 3)``."""
         nu, nv = self.Bu.shape[0], self.Bv.shape[0]
         m1, n_l = self.Bu.shape[1], self.Bv.shape[1]
         left = np.empty((m1, 2, nv, 3))
-        left[:, 0] = (self._stack_u_t @ np.concatenate([g, g_u]).reshape(2 * nu, nv * 3)
-                      ).reshape(m1, nv, 3)
+        left[:, 0] = (self._stack_u_t @ g_stack.reshape(2 * nu, nv * 3)).reshape(m1, nv, 3)
         left[:, 1] = (self._bu_t @ g_v.reshape(nu, nv * 3)).reshape(m1, nv, 3)
         out = self._stack_v_t @ left.transpose(1, 2, 0, 3).reshape(2 * nv, m1 * 3)  # (L, M1*3)
         return out.reshape(n_l, m1, 3).transpose(1, 0, 2)

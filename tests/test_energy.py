@@ -181,6 +181,79 @@ def test_value_alone_is_the_value_of_value_and_grad_to_the_last_bit(model):
         assert term.value(model.params) != 0.0
 
 
+def _numpy_integrand(G, dG, su, sv, weights, orientation):
+    # flux_integrand_grads as numpy wrote it before it was compiled (segsnake/_flux.c)
+    o = float(orientation)
+    nx = o * (sv[..., 1] * su[..., 2] - sv[..., 2] * su[..., 1])
+    wG = weights * G * o
+    zero = np.zeros_like(wG)
+    return (float(np.sum(weights * G * nx)), (weights * nx)[..., None] * dG,
+            np.stack([zero, -wG * sv[..., 2], wG * sv[..., 1]], axis=-1),
+            np.stack([zero, wG * su[..., 2], -wG * su[..., 1]], axis=-1))
+
+
+@pytest.mark.parametrize("orientation", [1, -1])
+def test_compiled_integrand_is_numpys_to_the_last_bit(orientation):
+    from segsnake.energy import flux_integrand_grads
+
+    rng = np.random.default_rng(7)
+    grid = (37, 23)
+    G = rng.normal(size=grid) * 1e3
+    dG, su, sv = (rng.normal(size=(*grid, 3)) * 10.0 ** rng.integers(-3, 4, size=(*grid, 3))
+                  for _ in range(3))
+    weights = rng.random(grid[0])[:, None] * rng.random(grid[1])[None, :]
+    # (strided inputs, as a cap's broadcast tangents are, are read as numpy reads them)
+    sv_strided = np.broadcast_to(sv[:, :1], sv.shape)
+    for a, b in ((su, sv), (su, sv_strided)):
+        expected = _numpy_integrand(G, dG, a, b, weights, orientation)
+        got = flux_integrand_grads(G, dG, a, b, weights, orientation)
+        assert got[0] == expected[0]
+        for x, y in zip(got[1:], expected[1:]):
+            assert x.shape == y.shape and np.array_equal(x, y)
+
+
+def test_compiled_integrand_refuses_wrong_sizes_and_overlapping_outputs():
+    from segsnake._flux import integrand
+
+    n = 5
+    G, W, term = np.ones(n), np.ones(n), np.empty(n)
+    dG, su, sv = np.ones((n, 3)), np.ones((n, 3)), np.ones((n, 3))
+    g, gu, gv = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    with pytest.raises(ValueError, match="dG"):
+        integrand(G, dG[:4], su, sv, W, 1.0, term, g, gu, gv)
+    with pytest.raises(ValueError, match="g_u_out"):
+        integrand(G, dG, su, sv, W, 1.0, term, g, gu.astype(np.float32), gv)
+    with pytest.raises(ValueError, match="g_sigma_out overlaps su"):
+        integrand(G, dG, su, sv, W, 1.0, term, su, gu, gv)
+    with pytest.raises(ValueError, match="term_out overlaps g_v_out"):
+        block = np.empty(4 * n)  # (g_v_out's first value is term_out's last)
+        integrand(G, dG, su, sv, W, 1.0, block[:n], g, gu, block[n - 1:4 * n - 1].reshape(n, 3))
+    with pytest.raises(ValueError):  # (read-only output)
+        ro = np.empty(n)
+        ro.flags.writeable = False
+        integrand(G, dG, su, sv, W, 1.0, ro, g, gu, gv)
+    integrand(G, dG, su, sv, W, -1.0, term, g, gu, gv)
+    # (n_x = 0 for parallel tangents; W G o = -1)
+    assert np.all(term == 0.0) and np.all(g == 0.0)
+    assert np.all(gu == [0.0, 1.0, -1.0]) and np.all(gv == [0.0, -1.0, 1.0])
+
+
+def test_the_basis_gives_contiguous_tangents_and_its_stacked_adjoint_is_the_adjoint():
+    model = _perturbed(SphereModel.ellipsoid([1.0, 0.5, 1.5], [2.0, 3.0, 2.5], m1=7, m2=6),
+                       4, 0.2)
+    basis, _ = model.quadrature((5, 3))
+    s, su, sv = basis.evaluate(model.control_points())
+    assert all(x.flags.c_contiguous and x.shape == (35, 18, 3) for x in (s, su, sv))
+    rng = np.random.default_rng(3)
+    g, g_u, g_v = (rng.normal(size=s.shape) for _ in range(3))
+    stacked = basis.adjoint_stacked(np.stack([g, g_u]), g_v)
+    assert np.array_equal(stacked, basis.adjoint(g, g_u, g_v))
+    # the transpose of evaluate: <evaluate(C), (g, g_u, g_v)> = <C, adjoint(g, g_u, g_v)>
+    C = rng.normal(size=model.control_points().shape)
+    lhs = sum(np.vdot(a, b) for a, b in zip(basis.evaluate(C), (g, g_u, g_v)))
+    assert np.vdot(C, stacked) == pytest.approx(lhs, rel=1e-12)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_closed_cylinder_gradient_matches_central_differences(seed):
     model = _perturbed(CylinderModel.from_axis([0.3, 0.2, -0.4], [2.0, 1.5, 3.0], 1.2, m1=6,
