@@ -28,3 +28,10 @@ def perturbed_init(phantom, seed: int) -> dict:
     if isinstance(phantom, dict):
         return perturb_init(phantom["init"], phantom["spacing"], seed)
     return perturb_init(phantom.init, phantom.spacing, seed)
+
+
+def blas_threads() -> set[int]:
+    """The thread counts of the BLAS libraries loaded in this process (threadpoolctl)."""
+    from threadpoolctl import threadpool_info
+
+    return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}

@@ -226,10 +226,7 @@ def test_label_map_warning_reaches_stderr_even_when_quiet(ball, tmp_path, capsys
 def test_every_command_runs_blas_in_one_thread():
     """Not only segment: a command's BLAS keeps to one thread (segsnake.parallel.one_blas_thread),
     so that a fit or a shape model gives the same numbers on any number of cores."""
-    from threadpoolctl import threadpool_info
-
-    def blas_threads():
-        return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+    from conftest import blas_threads
 
     before = blas_threads()
     if before == {1}:

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import blas_threads
 from scipy import ndimage
 
 from segsnake import cancel, parallel
@@ -179,12 +180,6 @@ def test_pieces_are_few_equal_and_cover_the_range(n, size):
     assert [i for s in got for i in range(s.start, s.stop)] == list(range(n))
 
 
-def _blas_threads() -> set[int]:
-    from threadpoolctl import threadpool_info
-
-    return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
-
-
 def test_a_segmentation_runs_blas_in_one_thread_and_restores_it_after():
     # OpenBLAS splits products by the core count and its rounding follows the split: while a
     # segmentation runs it keeps to one thread (parallel.one_blas_thread), and the limit the
@@ -199,19 +194,19 @@ def test_a_segmentation_runs_blas_in_one_thread_and_restores_it_after():
     seen = []
     config = SegmentConfig.from_mapping({**ph.init, "coarse_to_fine": False})
     with threadpool_limits(limits=2, user_api="blas"):
-        if _blas_threads() != {2}:
+        if blas_threads() != {2}:
             pytest.skip("the BLAS here does not take two threads")
         segment_volume(ph.image, ph.spacing, config,
-                       progress=lambda stage, frac: seen.append(_blas_threads()))
+                       progress=lambda stage, frac: seen.append(blas_threads()))
         assert seen and all(s == {1} for s in seen)
-        assert _blas_threads() == {2}
+        assert blas_threads() == {2}
 
         def stop(stage, frac):
             raise RuntimeError("stopped")
 
         with pytest.raises(RuntimeError, match="stopped"):
             segment_volume(ph.image, ph.spacing, config, progress=stop)
-        assert _blas_threads() == {2}
+        assert blas_threads() == {2}
 
 
 def test_overlapping_limited_calls_share_one_limit_and_restore_it_at_the_last_end():
@@ -219,7 +214,7 @@ def test_overlapping_limited_calls_share_one_limit_and_restore_it_at_the_last_en
     # process's own count comes back once both have (threadpoolctl's own limits would restore
     # A's "before" while B runs, and B's "before", one thread, at the end). (No limit is set
     # around them: OpenBLAS then ignores a count set in another thread.)
-    before = _blas_threads()
+    before = blas_threads()
     if before == {1}:
         pytest.skip("the BLAS here runs one thread already")
     a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
@@ -229,13 +224,13 @@ def test_overlapping_limited_calls_share_one_limit_and_restore_it_at_the_last_en
     def a():
         a_in.set()
         b_in.wait(10)
-        seen["a"] = _blas_threads()
+        seen["a"] = blas_threads()
 
     @parallel.one_blas_thread
     def b():
         b_in.set()
         a_out.wait(10)
-        seen["b after a"] = _blas_threads()
+        seen["b after a"] = blas_threads()
 
     ta = threading.Thread(target=a)
     ta.start()
@@ -246,4 +241,4 @@ def test_overlapping_limited_calls_share_one_limit_and_restore_it_at_the_last_en
     a_out.set()
     tb.join(10)
     assert seen == {"a": {1}, "b after a": {1}}
-    assert _blas_threads() == before
+    assert blas_threads() == before
