@@ -27,6 +27,13 @@ from numpy.typing import NDArray
 
 from segsnake.surfaces import SplineSurface
 
+try:
+    from segsnake import _flux
+except ImportError as exc:  # an install that skipped the build (no compiler), or a stale checkout
+    raise ImportError("segsnake's compiled kernel segsnake/_flux.c is not built: reinstall "
+                      "with `pip install -e .` (or `make install`), which needs a C compiler "
+                      "and the Python headers") from exc
+
 __all__ = ["Sampler", "Energy", "FluxTerm", "AxialTension", "SumEnergy", "flux_integrand_grads",
            "flux_value", "cap_nodes", "RingBarrier", "CrossingPenalty"]
 
@@ -49,7 +56,8 @@ def flux_value(G: NDArray, su: NDArray, sv: NDArray, weights: NDArray,
     the quadrature grid ``(nu, nv[, 3])``): the value :func:`flux_integrand_grads` returns, to
     the last bit."""
     nx = float(orientation) * (sv[..., 1] * su[..., 2] - sv[..., 2] * su[..., 1])
-    return float(np.sum(weights * G * nx)), nx
+    # (summed in C order whatever the inputs' layout, as flux_integrand_grads sums)
+    return float(np.sum(np.ascontiguousarray(weights * G * nx))), nx
 
 
 def flux_integrand_grads(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weights: NDArray,
@@ -67,17 +75,19 @@ def _integrand_stacked(G: NDArray, dG: NDArray, su: NDArray, sv: NDArray, weight
                        orientation: int) -> tuple[float, NDArray, NDArray]:
     # flux_integrand_grads with the derivatives on sigma and sigma_u stacked in one array
     # (2, nu, nv, 3), as GridBasis.adjoint_stacked takes them. One compiled pass over the nodes
-    # (segsnake/_flux.c), the same numbers as numpy's products; the sum is numpy's.
-    from segsnake._flux import integrand
+    # (segsnake/_flux.c), the same numbers as numpy's float64 products (inputs broadcast
+    # together as numpy would); the sum is numpy's, in C order.
+    grid = np.broadcast_shapes(np.shape(G), np.shape(weights), np.shape(dG)[:-1],
+                               np.shape(su)[:-1], np.shape(sv)[:-1])
 
-    grid = np.shape(G)
-    c = np.ascontiguousarray
+    def c(a, trailing=()):
+        return np.ascontiguousarray(np.broadcast_to(a, grid + trailing), dtype=np.float64)
+
     term = np.empty(grid)
     g_stack = np.empty((2, *grid, 3))
     g_v = np.empty((*grid, 3))
-    integrand(c(G, dtype=np.float64), c(dG, dtype=np.float64), c(su, dtype=np.float64),
-              c(sv, dtype=np.float64), c(np.broadcast_to(weights, grid), dtype=np.float64),
-              float(orientation), term, g_stack[0], g_stack[1], g_v)
+    _flux.integrand(c(G), c(dG, (3,)), c(su, (3,)), c(sv, (3,)), c(weights),
+                    float(orientation), term, g_stack[0], g_stack[1], g_v)
     return float(np.sum(term)), g_stack, g_v
 
 

@@ -194,7 +194,7 @@ def _numpy_integrand(G, dG, su, sv, weights, orientation):
 
 @pytest.mark.parametrize("orientation", [1, -1])
 def test_compiled_integrand_is_numpys_to_the_last_bit(orientation):
-    from segsnake.energy import flux_integrand_grads
+    from segsnake.energy import flux_integrand_grads, flux_value
 
     rng = np.random.default_rng(7)
     grid = (37, 23)
@@ -207,9 +207,18 @@ def test_compiled_integrand_is_numpys_to_the_last_bit(orientation):
     for a, b in ((su, sv), (su, sv_strided)):
         expected = _numpy_integrand(G, dG, a, b, weights, orientation)
         got = flux_integrand_grads(G, dG, a, b, weights, orientation)
-        assert got[0] == expected[0]
+        assert got[0] == expected[0] == flux_value(G, a, b, weights, orientation)[0]
         for x, y in zip(got[1:], expected[1:]):
             assert x.shape == y.shape and np.array_equal(x, y)
+    # inputs that broadcast together (one tangent row for all), and a transposed layout: the
+    # same products, summed in C order as flux_value sums them
+    got = flux_integrand_grads(G, dG, su[:1], sv, weights, orientation)
+    expected = _numpy_integrand(G, dG, np.broadcast_to(su[:1], su.shape), sv, weights,
+                                orientation)
+    assert all(np.array_equal(x, y) for x, y in zip(got[1:], expected[1:]))
+    Gt, dGt, sut, svt = (np.asfortranarray(a) for a in (G, dG, su, sv))
+    assert flux_integrand_grads(Gt, dGt, sut, svt, weights, orientation)[0] == \
+        flux_value(Gt, sut, svt, weights, orientation)[0]
 
 
 def test_compiled_integrand_refuses_wrong_sizes_and_overlapping_outputs():
