@@ -10,6 +10,7 @@ $(PY):
 
 # Reinstalled when the build inputs change, or when a compiled kernel is missing.
 $(STAMP): pyproject.toml setup.py segsnake/_sampling.c segsnake/_scan.c segsnake/_flux.c \
+		segsnake/_buffers.h \
 		$(if $(and $(wildcard segsnake/_sampling*.so),$(wildcard segsnake/_scan*.so),\
 		$(wildcard segsnake/_flux*.so)),,FORCE) | $(PY)
 	$(PY) -m pip install --quiet -e '.[test]'

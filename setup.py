@@ -2,13 +2,11 @@
 
 from setuptools import Extension, setup
 
-setup(ext_modules=[# (no fused multiply-adds either: its AVX2 and baseline builds agree to the bit
-                   # whatever CFLAGS say, -march=native included)
-                   Extension("segsnake._sampling", ["segsnake/_sampling.c"],
-                             extra_compile_args=["-ffp-contract=off"]),
-                   # (no fused multiply-adds: numpy's products, to the bit)
-                   Extension("segsnake._flux", ["segsnake/_flux.c"],
-                             extra_compile_args=["-ffp-contract=off"]),
-                   # (no fused multiply-adds: the scan's ties are decided alike everywhere)
-                   Extension("segsnake._scan", ["segsnake/_scan.c"],
-                             extra_compile_args=["-ffp-contract=off"])])
+# Every kernel: the buffer checks they share, and no fused multiply-adds (_sampling's AVX2 and
+# baseline builds agree to the bit whatever CFLAGS say, -march=native included; _flux gives
+# numpy's products to the bit; _scan decides its ties alike everywhere).
+KERNEL = {"depends": ["segsnake/_buffers.h"], "extra_compile_args": ["-ffp-contract=off"]}
+
+setup(ext_modules=[Extension("segsnake._sampling", ["segsnake/_sampling.c"], **KERNEL),
+                   Extension("segsnake._flux", ["segsnake/_flux.c"], **KERNEL),
+                   Extension("segsnake._scan", ["segsnake/_scan.c"], **KERNEL)])

@@ -13,6 +13,8 @@
 #include <Python.h>
 #include <string.h>
 
+#include "_buffers.h"
+
 /* For node i (x, y, z the components of its 3-vectors):
  *   nx = o (sv_y su_z - sv_z su_y)          the outward normal's x component
  *   term = (W G) nx                         its share of sum W G n_x
@@ -40,34 +42,6 @@ static void integrand(const double *G, const double *dG, const double *su, const
         g_v[3 * i + 1] = wgo * a[2];
         g_v[3 * i + 2] = -wgo * a[1];
     }
-}
-
-/* A C-contiguous float64 buffer of exactly `count` values, writable when asked; -1 with an
- * exception set otherwise. */
-static int get_doubles(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count,
-                       const char *name)
-{
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0)
-        return -1;
-    const char *f = view->format ? view->format : "B";
-    if ((f[0] == '<' || f[0] == '=' || f[0] == '@') && f[1] != '\0')
-        f++;
-    if (strcmp(f, "d") != 0 || view->itemsize != (Py_ssize_t)sizeof(double) ||
-        view->len != count * (Py_ssize_t)sizeof(double)) {
-        PyErr_Format(PyExc_ValueError, "%s: expected a C-contiguous float64 array of %zd values",
-                     name, count);
-        PyBuffer_Release(view);
-        return -1;
-    }
-    return 0;
-}
-
-/* True when the byte ranges of two buffers overlap. */
-static int overlap(const Py_buffer *a, const Py_buffer *b)
-{
-    const char *p = (const char *)a->buf, *q = (const char *)b->buf;
-    return p < q + b->len && q < p + a->len;
 }
 
 PyDoc_STRVAR(integrand_doc,

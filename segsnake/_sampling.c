@@ -19,6 +19,8 @@
 #include <math.h>
 #include <string.h>
 
+#include "_buffers.h"
+
 static void weights(double u, double w[4], double dw[4])
 {
     double v = 1.0 - u, u2 = u * u, u3 = u2 * u;
@@ -141,34 +143,6 @@ static void NAME(const CTYPE *coef, const Py_ssize_t pshape[3], const Py_ssize_t
 DEFINE_SAMPLE_POINTS(sample_points_f64, double)
 DEFINE_SAMPLE_POINTS(sample_points_f32, float)
 
-/* A C-contiguous buffer of exactly `count` values (any count when negative) of format `want`
- * ("d": float64, "f": float32; PyBUF_FORMAT: an int64 array of the same size is refused, not
- * read as doubles). 0 on success, -1 with an exception set. */
-static int get_values(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count,
-                      const char *want, const char *name)
-{
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0)
-        return -1;
-    const char *f = view->format ? view->format : "B";
-    if ((f[0] == '<' || f[0] == '=' || f[0] == '@') && f[1] != '\0')
-        f++;
-    Py_ssize_t item = want[0] == 'd' ? (Py_ssize_t)sizeof(double) : (Py_ssize_t)sizeof(float);
-    if (strcmp(f, want) != 0 || view->itemsize != item || (count >= 0 && view->len != count * item)) {
-        PyErr_Format(PyExc_ValueError, "%s: expected a C-contiguous %s array of %zd values",
-                     name, want[0] == 'd' ? "float64" : "float32", count);
-        PyBuffer_Release(view);
-        return -1;
-    }
-    return 0;
-}
-
-static int get_doubles(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count,
-                       const char *name)
-{
-    return get_values(obj, view, writable, count, "d", name);
-}
-
 /* "f" for a float32 buffer, else "d" (its check then says what was expected); NULL with an
  * exception set when the object has no buffer. */
 static const char *coef_format(PyObject *obj)
@@ -176,10 +150,7 @@ static const char *coef_format(PyObject *obj)
     Py_buffer view = {0};
     if (PyObject_GetBuffer(obj, &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
         return NULL;
-    const char *f = view.format ? view.format : "B";
-    if ((f[0] == '<' || f[0] == '=' || f[0] == '@') && f[1] != '\0')
-        f++;
-    const char *kind = strcmp(f, "f") == 0 ? "f" : "d";
+    const char *kind = strcmp(bare_format(&view), "f") == 0 ? "f" : "d";
     PyBuffer_Release(&view);
     return kind;
 }

@@ -33,6 +33,8 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "_buffers.h"
+
 typedef struct {
     Py_ssize_t ray;
     double z;
@@ -313,27 +315,6 @@ static int winding_points(const double *tri, Py_ssize_t f, const double *pts, Py
     return 0;
 }
 
-/* A buffer's struct format without its byte-order prefix ("d": float64, "q": int64). */
-static const char *bare_format(const Py_buffer *view)
-{
-    const char *fmt = view->format ? view->format : "B";
-    if ((fmt[0] == '<' || fmt[0] == '=' || fmt[0] == '@') && fmt[1] != '\0')
-        fmt++;
-    return fmt;
-}
-
-static int is_float64(const Py_buffer *view)
-{
-    return strcmp(bare_format(view), "d") == 0 && view->itemsize == sizeof(double);
-}
-
-static int is_int64(const Py_buffer *view)
-{
-    const char *fmt = bare_format(view);
-    return (strcmp(fmt, "q") == 0 || (strcmp(fmt, "l") == 0 && sizeof(long) == 8)) &&
-           view->itemsize == sizeof(long long);
-}
-
 /* The triangles' buffer: a C-contiguous float64 (F, 3, 3) array of finite coordinates. */
 static int get_triangles(PyObject *obj, Py_buffer *view, Py_ssize_t *f)
 {
@@ -485,13 +466,6 @@ static PyObject *py_parity(PyObject *self, PyObject *args)
     PyBuffer_Release(&view);
     PyBuffer_Release(&out);
     Py_RETURN_NONE;
-}
-
-/* Do two buffers share memory? (an output over an input would be overwritten while read) */
-static int overlap(const Py_buffer *a, const Py_buffer *b)
-{
-    const char *a0 = (const char *)a->buf, *b0 = (const char *)b->buf;
-    return a->len > 0 && b->len > 0 && a0 < b0 + b->len && b0 < a0 + a->len;
 }
 
 /* The mesh: vertices, a C-contiguous float64 (n, 3) array of finite coordinates, and faces, a

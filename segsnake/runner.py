@@ -28,11 +28,11 @@ import numpy as np
 
 from segsnake import __version__, outdir
 from segsnake.allocator import trim
-from segsnake.parallel import one_blas_thread
 from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
 from segsnake.centerline_files import read_centerline, resolve_centerline
 from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
+from segsnake.parallel import one_blas_thread
 from segsnake.qc import click_index, write_qc_picture
 from segsnake.saved_snake import image_from_world, load_snake, load_snake_and_record, \
     read_model, world_from_image
