@@ -75,24 +75,26 @@ class RegionParams:
     #: turn, each from the surface before it (:attr:`long_axis_poles`); a tube's (M1 not given)
     #: on these numbers of control points around, its rings along staying those its calibre
     #: chose. The schedule ends at
-    #: the first grid refused (:attr:`finer_volume`), at the first that gains less than
+    #: the first grid refused (:attr:`finer_departure`), at the first that gains less than
     #: :attr:`finer_gain`, or at its last, 37: about 1.5 mm between control points on the
     #: hippocampus, the edge term's smoothing width (docs/benchmarks.md, session 19).
     finer_m: tuple[int, ...] = (13, 17, 21, 25, 29, 33, 37)
-    #: ... each kept while it *refines* the surface rather than moving it: the volume it
-    #: encloses stays within this fraction of the coarser grid's (dimensionless, |V_fine -
-    #: V_coarse| / V_coarse). (No test on the image energy's gain for keeping a grid: on a
-    #: near-tie it flipped results, a 1 % threshold in session 10, its sign on two sphere
-    #: phantoms under 1e-12 gradient perturbations in session 18; docs/design.md, "Coarse to
-    #: fine".) Detail that a coarser grid smoothed over comes back as bulges and as the necks
-    #: between them, which nearly cancel in volume; a finer grid that leaks through a gap into a
-    #: neighbour of the same intensity, or folds through itself, changes the volume by as much
-    #: as it moves the surface. Measured on the real benchmark's sphere cases (docs/benchmarks.md,
-    #: "Coarse to fine with a volume test"): every finer grid that raised a perfect-edge Dice
-    #: changed the volume by 0.0-5.3 %; those that leaked into a neighbour or collapsed through
-    #: themselves by 15 % to 10 x. Every result is the same from 10 % to 15 %, and all but one
-    #: from 7.5 % to 30 % (a thalamus grid at +7.7 %, a caudate one at +15 %).
-    finer_volume: float = 0.1
+    #: ... each kept while it *refines* the surface rather than moving it
+    #: (:func:`segsnake.departure.departure`): the volume between the finer and the coarser
+    #: surface farther than the coarser grid's control spacing from the coarser surface stays
+    #: below this fraction of the coarser volume (dimensionless). Detail that a coarser grid
+    #: smoothed over is shorter than its control spacing, and so is the distance by which a
+    #: finer grid moves the surface to bring it back; a finer grid that leaks through a gap into
+    #: a neighbour of the same intensity carries part of the surface much farther. (No test on
+    #: the image energy's gain for keeping a grid: on a near-tie it flipped results; nor on the
+    #: enclosed volume's change, which a refinement of an elongated structure takes to 10 %
+    #: and a leak that starts small to 14 %, so that the perfect-edge hippocampus flipped under
+    #: 1e-12 gradient perturbations; docs/design.md, "Coarse to fine".) Measured on the real
+    #: benchmark's clicks, perturbed clicks and perfect edges (165 grids; docs/benchmarks.md,
+    #: session 29): every grid that refined a perfect-edge structure, the brain, the trachea or
+    #: a nucleus departed by 0.000-0.005; every grid that lowered a Dice by more than 0.01,
+    #: by 0.046 or more.
+    finer_departure: float = 0.02
     #: The schedule goes on past a kept grid while that grid lowered the image energy by at
     #: least this fraction of it (dimensionless, (E_coarse - E_fine) / |E_coarse| at a common
     #: quadrature): a grid that gains less shows the detail left is below what the next one

@@ -18,6 +18,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from segsnake.departure import departure
 from segsnake.distance import distance_within
 from segsnake.energy import FluxTerm
 from segsnake.errors import SegmentationError
@@ -347,19 +348,20 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     the surface's long axis (``p.long_axis_poles``,
     :func:`segsnake.resample.poles_on_long_axis`), every other from the exact L2 projection
     (:func:`segsnake.resample.resample`). A grid is kept while it refines the surface: the
-    volume it encloses stays within ``p.finer_volume`` of the coarser surface's (detail comes
-    back as bulges and necks whose volumes nearly cancel; a leak into a neighbour or a fold
-    through itself moves the whole volume). The first grid refused ends the schedule, as does
+    volume between it and the coarser surface farther than the coarser grid's control spacing
+    stays within ``p.finer_departure`` of the coarser volume (:func:`segsnake.departure.departure`:
+    detail comes back within a control spacing; a leak into a neighbour carries the surface
+    farther). The first grid refused ends the schedule, as does
     a finer stage that fails (a collapse), and a kept grid whose image energy gain (recorded)
     is below ``p.finer_gain``: the next is not tried (docs/design.md, "Coarse to
     fine").
 
     ``model`` is the last round's stationary result on ``run.lookup``. Each grid runs to the
     interim tolerance (``p.interim_tol``): only the grid kept last is the result, which
-    :func:`polish` takes on to the final tolerance, and the volume test is then asked again of
-    the polished surface (a leak that had begun goes on while it is polished): refused, the grid
-    before is polished instead, down to the last round's surface. Returns the result; ``run.last``
-    is its stage's."""
+    :func:`polish` takes on to the final tolerance, and the test is then asked again of
+    the polished surface against the surface it refined (a leak that had begun goes on while it
+    is polished): refused, the grid before is polished instead, down to the last round's
+    surface. Returns the result; ``run.last`` is its stage's."""
     from segsnake.resample import poles_on_long_axis, resample
 
     lookup = run.lookup
@@ -368,13 +370,16 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
         flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
         return flux.value(m.params)
 
-    def refines(finer: SplineSurface, coarser_volume: float) -> tuple[bool, float]:
-        change = (finer.volume(order=4) - coarser_volume) / max(coarser_volume, 1e-300)
-        return bool(abs(change) <= p.finer_volume), change
+    def refines(finer: SplineSurface, coarser: SplineSurface) -> tuple[bool, dict]:
+        moved = departure(coarser, finer, run.sp)
+        volume = abs(coarser.volume(order=4))
+        return moved <= p.finer_departure, {
+            "departure": moved,
+            "volume_change": (abs(finer.volume(order=4)) - volume) / max(volume, 1e-300)}
 
     tube = model.kind == "cylinder"
-    # the grids kept: (surface, its stage's record, the volume of the surface it refines)
-    kept: list[tuple[SplineSurface, dict, float]] = []
+    # the grids kept: (surface, its stage's record, the surface it refines)
+    kept: list[tuple[SplineSurface, dict, SplineSurface]] = []
     base = model, run.last
     for m in p.finer_m:
         if m <= (model.m1 if tube else min(model.m1, model.m2)):
@@ -395,23 +400,22 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
                                          p.edge_smooth_mm), MAX_ORDER)
         e, e_fine = image_energy(model, order), image_energy(finer, order)
         gain = (e - e_fine) / max(abs(e), 1e-300)
-        volume = abs(model.volume(order=4))
-        keep, change = refines(finer, volume)
-        run.history[-1].update(image_energy_gain=gain, volume_change=change, kept=keep)
+        keep, measures = refines(finer, model)
+        run.history[-1].update(image_energy_gain=gain, **measures, kept=keep)
         if not keep:
             run.last = last  # (the result's energy stays the coarser stage's)
             break
+        kept.append((finer, run.last, model))
         model = finer
-        kept.append((finer, run.last, volume))
         if gain < p.finer_gain:
             break
     while kept:
-        finer, run.last, volume = kept.pop()
+        finer, run.last, coarser = kept.pop()
         stages = len(run.history)
         polished = polish(run, finer)
-        keep, change = refines(polished, volume)
+        keep, measures = refines(polished, coarser)
         if len(run.history) > stages:  # (a stage at its cap is not polished: kept as it was)
-            run.history[-1].update(volume_change=change, kept=keep)
+            run.history[-1].update(**measures, kept=keep)
         if keep:
             return polished
     model, run.last = base

@@ -242,7 +242,7 @@ def _from_click(name: str, start=lambda case: case["init"]):
 @pytest.mark.slow
 def test_a_finer_grid_that_leaks_while_it_is_polished_is_refused():
     """The lung tumour from the benchmark's third perturbed click: its 13 x 13 grid, stopped at
-    the interim tolerance, is within the volume test, and goes on leaking while it is polished
+    the interim tolerance, refines the surface, and goes on leaking while it is polished
     (Dice 0.848 when kept). The test is asked again of the polished surface, which it refuses:
     the result is the last round's surface, as before the grids ran to the interim tolerance
     (0.915; docs/benchmarks.md, session 20)."""
@@ -255,8 +255,9 @@ def test_a_finer_grid_that_leaks_while_it_is_polished_is_refused():
                              lambda case: dict(clicks(case, 3))["perturbed 3"])
     grid = next(h for h in res.history if h["stage"] == "grid 13x13")
     polished = next(h for h in res.history if h["stage"] == "polish: grid 13x13")
-    assert grid["kept"] and abs(grid["volume_change"]) <= RegionParams().finer_volume
-    assert not polished["kept"] and abs(polished["volume_change"]) > RegionParams().finer_volume
+    # (measured: the grid departs by 0, the polished surface by 0.077)
+    assert grid["kept"] and grid["departure"] <= RegionParams().finer_departure
+    assert not polished["kept"] and polished["departure"] > 2 * RegionParams().finer_departure
     assert res.model.m1 == 9 and dice(res.mask, truth) >= 0.9
 
 

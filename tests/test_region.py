@@ -167,19 +167,20 @@ def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
         ["grid 13x13", "grid 17x17", "grid 21x21"] and on.model.m1 == 21
     # measured: the lobes the 9 x 9 grid smooths away come back, 0.974 -> 0.985
     assert dice(fine.mask, truth) >= dice(coarse.mask, truth) + 0.005
-    # A refinement: the lobes come back with the enclosed volume within a few per cent.
-    changes = [h["volume_change"] for h in grids]
-    assert max(map(abs, changes)) < 0.05
-    # The volume test refuses a grid that moves more volume than finer_volume allows, and the
-    # result is then the coarser surface exactly.
+    # A refinement: the lobes come back within the coarser grid's control spacing, with the
+    # enclosed volume within a few per cent.
+    assert all(h["departure"] == 0 for h in grids)
+    assert max(abs(h["volume_change"]) for h in grids) < 0.05
+    # A grid refused (here every grid: a departure below zero) leaves the coarser surface
+    # exactly as the result.
     tight = segment_volume(ph.image, ph.spacing, config, region_params=RegionParams(
-        finer_volume=0.5 * abs(changes[0])))
+        finer_departure=-1.0))
     grids = [h for h in tight.history if h["stage"].startswith("grid")]
     assert [h["kept"] for h in grids] == [False] and tight.model.m1 == 9
     assert np.array_equal(tight.mask, coarse.mask) and tight.energy == coarse.energy
 
 
-def test_a_finer_grid_that_passes_the_volume_test_is_kept_whatever_its_energy_gain():
+def test_a_finer_grid_that_refines_the_surface_is_kept_whatever_its_energy_gain():
     # The noisy blob at 1 x 1 x 2 mm whose last 9 x 9 round stops at the iteration cap: its
     # 13 x 13 grid's image energy gain came out negative (-0.7 %) or positive (under a 1e-12
     # gradient perturbation) as the grid's path went, and a test on its sign refused the grid
@@ -189,7 +190,7 @@ def test_a_finer_grid_that_passes_the_volume_test_is_kept_whatever_its_energy_ga
     res = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(ph.init))
     grids = [h for h in res.history if h["stage"].startswith("grid")]
     assert [h["stage"] for h in grids] == ["grid 13x13"]  # (measured gain -0.9 %)
-    assert grids[0]["kept"] and abs(grids[0]["volume_change"]) <= RegionParams().finer_volume
+    assert grids[0]["kept"] and grids[0]["departure"] <= RegionParams().finer_departure
     assert grids[0]["image_energy_gain"] < RegionParams().finer_gain
     assert res.model.m1 == 13 and dice(res.mask, ph.truth.astype(bool)) >= 0.98  # 0.984
 
@@ -215,7 +216,7 @@ def test_coarse_to_fine_refines_a_tube_around_and_keeps_its_rings():
     assert [h["stage"] for h in grids] == [f"grid {m}x{m2}" for m in (13, 17, 21, 25, 29, 33)]
     assert all(h["image_energy_gain"] >= gain for h in grids[:-1])
     assert grids[-1]["image_energy_gain"] < gain
-    assert all(h["kept"] and abs(h["volume_change"]) < 0.1 for h in grids)
+    assert all(h["kept"] and h["departure"] == 0 and abs(h["volume_change"]) < 0.1 for h in grids)
     assert (coarse.model.m1, fine.model.m1, fine.model.m2) == (8, 33, m2)
     # measured 0.838 -> 0.984: the lobes come back (0.901 at 17 points around)
     assert dice(fine.mask, truth) >= dice(coarse.mask, truth) + 0.1
