@@ -141,7 +141,7 @@ def test_segment_end_to_end(ball, tmp_path, capsys):
     from segsnake.surfaces import load_model
 
     model = load_model(out / "snake.json")
-    # (coarse to fine: a finer grid, the volume within 10 %; the result is the last grid kept,
+    # (coarse to fine: a finer grid that refines the surface; the result is the last grid kept,
     # whose stage the restart record names)
     assert model.kind == "sphere" and model.m1 == model.m2 >= 13
     restart = json.loads((out / "snake.json").read_text())["settings"]["restart"]

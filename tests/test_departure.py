@@ -69,12 +69,34 @@ def test_the_departure_counts_the_image_voxels_wherever_the_surfaces_lie():
     assert half != moved and half == pytest.approx(moved, rel=0.03)
 
 
-def test_a_tube_that_grows_past_its_end_departs_by_its_new_length():
-    coarse = CylinderModel.from_axis((20, 20, 10), (20, 20, 30), 4.0, m1=8, m2=6)
-    fine = CylinderModel.from_axis((20, 20, 10), (20, 20, 50), 4.0, m1=13, m2=6)
-    h = control_spacing(coarse)
-    # the end cap at z = 30 moves 20 mm: the part of the longer tube beyond h of it
-    expected = (20 - h) / 20
-    assert departure(coarse, fine, SP) == pytest.approx(expected, rel=0.03)  # (1.1 %)
-    assert departure(coarse, CylinderModel.from_axis((20, 20, 10), (20, 20, 31), 4.2, m1=13,
+def test_a_surface_that_shrinks_away_from_part_of_the_coarser_one_departs():
+    # A small ball hugging the inside of the coarser sphere: every sample of it lies within h of
+    # the coarser surface, but most of the coarser surface lies far from it.
+    coarse = SphereModel.ellipsoid(CENTRE, (10, 10, 10))
+    off = CENTRE + np.array([8.5, 0.0, 0.0])
+    fine = SphereModel.ellipsoid(off, (1.5, 1.5, 1.5), m1=13, m2=13)
+    expected = _counted(lambda p: np.linalg.norm(p - CENTRE, axis=1) < 10,
+                        lambda p: np.linalg.norm(p - off, axis=1) < 1.5,
+                        lambda p: np.abs(np.linalg.norm(p - CENTRE, axis=1) - 10),
+                        control_spacing(coarse), SP) / (4 / 3 * math.pi * 1000)
+    assert departure(coarse, fine, SP) == pytest.approx(expected, rel=0.01)  # 0.224
+
+
+def test_a_tube_departs_by_what_grows_past_its_end_cap():
+    start = np.array([20.1, 19.9, 10.3])  # (the caps off the voxel centres)
+    coarse = CylinderModel.from_axis(start, start + (0, 0, 20), 4.0, m1=8, m2=6)
+    fine = CylinderModel.from_axis(start, start + (0, 0, 40), 4.0, m1=13, m2=6)
+
+    def inside(p, length):
+        return (np.hypot(p[:, 0] - start[0], p[:, 1] - start[1]) < 4) \
+            & (p[:, 2] > start[2]) & (p[:, 2] < start[2] + length)
+
+    # beyond the coarser tube's cap, the cap is the nearest of its surface
+    expected = _counted(lambda p: inside(p, 20), lambda p: inside(p, 40),
+                        lambda p: p[:, 2] - start[2] - 20, control_spacing(coarse),
+                        SP) / (math.pi * 16 * 20)
+    assert departure(coarse, fine, SP) == pytest.approx(expected, rel=0.01)  # 0.825
+    # A cap that moves 2 mm, less than the spacing (8.9 mm at radius 10): nothing departs.
+    coarse = CylinderModel.from_axis(start, start + (0, 0, 60), 10.0, m1=8, m2=6)
+    assert departure(coarse, CylinderModel.from_axis(start, start + (0, 0, 62), 10.0, m1=13,
                                                      m2=6), SP) == 0

@@ -193,6 +193,11 @@ def test_a_finer_grid_that_refines_the_surface_is_kept_whatever_its_energy_gain(
     assert grids[0]["kept"] and grids[0]["departure"] <= RegionParams().finer_departure
     assert grids[0]["image_energy_gain"] < RegionParams().finer_gain
     assert res.model.m1 == 13 and dice(res.mask, ph.truth.astype(bool)) >= 0.98  # 0.984
+    # (a grid that departs by exactly the threshold is kept: here by 0 at a threshold of 0)
+    assert grids[0]["departure"] == 0
+    at_zero = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(ph.init),
+                             region_params=RegionParams(finer_departure=0.0))
+    assert at_zero.model.m1 == 13 and np.array_equal(at_zero.mask, res.mask)
 
 
 def test_coarse_to_fine_refines_a_tube_around_and_keeps_its_rings():

@@ -94,8 +94,9 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                    help="region energy: a sphere without --m1/--m2 tries 13 x 13, 17 x 17, "
                         "... up to 37 x 37 after 9 x 9 (the first with its poles on the "
                         "surface's long axis); a tube without --m1 as many control points "
-                        "around after 8; each kept while it keeps the enclosed volume within "
-                        "10 %% (finer detail, not a leak), the next tried while the last one "
+                        "around after 8; each kept while it moves the surface by less than "
+                        "the coarser grid's control spacing (finer detail, not a leak: under "
+                        "2 %% of the volume may lie farther), the next tried while the last one "
                         "lowered the energy by 1 %% or more (on by default, "
                         "--no-coarse-to-fine keeps the first grid)")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
