@@ -51,8 +51,8 @@ def test_the_departure_is_the_volume_beyond_a_control_spacing(radii):
 
     expected = _counted(in_coarse, in_fine, distance, h, SP) / (4 / 3 * math.pi * 1000)
     assert expected > 0.05  # (each case moves a sizeable volume beyond h)
-    # the nearest of the surface samples is at most half their spacing (h / 16) farther than
-    # the surface: a few voxels' layer more
+    # (a voxel's nearest sample is farther than the surface by about s^2 / 8h at the distance
+    # h, s the samples' spacing: a few hundredths of a mm, a few voxels in all)
     assert departure(coarse, fine, SP) == pytest.approx(expected, rel=0.01)  # (0.1-0.8 %)
 
 
