@@ -96,53 +96,66 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         del core
     run.timings["edge_map_s"] = time.perf_counter() - t0
 
-    def stage(on, window, start, density, name, tol=None, stationary=False, resume=None):
+    def stage(on, window, start, density, name, tol=None, stationary=False, resume=None,
+              used=0, at_rest=True, lookup=None, inner=False):
         # One stage of the run ``on`` (the image's grid, or the growth passes' coarser one) in
         # a window of its grid around the surface; while its surface comes near a face of the
         # window (which holds it back from then on), on from there in a window around both
-        # (segsnake.window). Returns the surface and the window it ended in.
-        margin, used = p.window_mm, 0
+        # (segsnake.window). Returns the surface and the window it ended in; ``on.lookup`` is
+        # that window's lookup, and ``on.last["window"]`` the window. ``lookup``: the window's,
+        # already built (a later stage of the same energy: the finer grids). ``inner``: the
+        # surfaces, given and returned, are in their windows' coordinates. ``used``, ``at_rest``:
+        # as :func:`segsnake.stage.run_stage`'s.
+        margin = p.window_mm
+        start = start if inner else window.model_in(start)
         while True:
-            on.lookup = None  # (the last stage's: not needed while this one's is built)
-
-            spent = []
-
-            def write(values, window=window):
-                # the density straight into the lookup's array, +1 in its padding
-                t0 = time.perf_counter()
-                values[...] = FOV_DENSITY
-                inner = values[(slice(FOV_PAD, -FOV_PAD or None),) * 3]
-                density(window, inner)
-                for cut in cuts.values():
-                    cut.apply(inner, window.lo, window.spacing, FOV_DENSITY)
-                spent.append(time.perf_counter() - t0)
-
-            t0 = time.perf_counter()
-            lookup = on.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
-            on.timings["edge_map_s"] += sum(spent)
-            on.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
+            if lookup is None:
+                on.lookup = None  # (the last stage's: not needed while this one's is built)
+                lookup = build_lookup(on, window, density)
             # (a surface that comes near a face of the window leaves the stage at once: its
             # further course would be the window's, not the image's)
-            model = window.model_out(on.region(
-                window.model_in(start), lookup, name, tol, stationary, resume,
-                leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm), used=used))
-            del lookup
+            found = on.region(start, lookup, name, tol, stationary, resume,
+                              leaves=lambda m, w=window: w.reaches(w.model_out(m), p.shell_mm),
+                              used=used, at_rest=at_rest)
+            on.last["window"] = window
+            model = window.model_out(found)
+            lookup = None
             if not window.reaches(model, p.shell_mm):
-                return model, window
+                return found if inner else model, window
             last = on.history[-1]
             last["window_grown"] = True
             old, margin = window, 2 * margin  # (a surface that grows far needs few windows)
             window = window.union(Window.around(model, window.full_shape, window.spacing,
                                                 margin))
-            resume = None
+            start, resume = window.model_in(model), None
             if last.get("left"):
                 # Up to here the window's energy was the whole volume's: the stage goes on from
                 # this iterate with the same functional (reference surface, quadrature order).
                 reference = window.model_in(old.model_out(on.last["reference"]))
-                start, resume = model, (reference, tuple(on.last["order"]))
+                resume = (reference, tuple(on.last["order"]))
                 used += last["iterations"]
             else:  # (ended near a face it never came near while running: afresh)
                 used = 0
+
+    def build_lookup(on, window, density):
+        # The lookup of ``density`` on the window: the density straight into the lookup's
+        # array, +1 in its padding and beyond a tube's cuts.
+        spent = []
+
+        def write(values):
+            t0 = time.perf_counter()
+            values[...] = FOV_DENSITY
+            inner = values[(slice(FOV_PAD, -FOV_PAD or None),) * 3]
+            density(window, inner)
+            for cut in cuts.values():
+                cut.apply(inner, window.lo, window.spacing, FOV_DENSITY)
+            spent.append(time.perf_counter() - t0)
+
+        t0 = time.perf_counter()
+        lookup = on.region_lookup(tuple(n + 2 * FOV_PAD for n in window.shape), write)
+        on.timings["edge_map_s"] += sum(spent)
+        on.timings["lookup_s"] += time.perf_counter() - t0 - sum(spent)
+        return lookup
 
     def branching(model):
         # A tube that reached a division of its structure ends there (the first cut found at
@@ -289,18 +302,53 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         model, window = stage(run, window, model, density, f"two classes, round {k + 1}",
                               None if k == last else p.interim_tol, stationary=k == last,
                               resume=resume)
-        del density, shell
         if k < last:
+            del density, shell
             branching(model)
             if respace:
                 model = interpolate_tube(model, model.m2)
             continue
-        round_start, final_window = start, window
+        round_start = start
         # (a tube's rings along follow its calibre: its finer grids are finer around only; a
         # restart's record names the result's last stage, after which its schedule had ended)
         if restart is None and config.coarse_to_fine and config.m1 is None \
                 and (config.m2 is None or model.kind == "cylinder"):
-            model = window.model_out(finer_grids(run, window.model_in(model), p))
+            base, current = window, run.lookup  # (the window the stages run in now, its lookup)
+
+            def advance(start, name, tol=None, stationary=False, resume=None, used=0,
+                        at_rest=True):
+                # A stage of the last round's energy (its density) from ``start`` in windows
+                # that follow it as the round's did, on from the current window's lookup;
+                # ``resume``: the record of the stage whose functional it goes on with.
+                # Surfaces in ``base``'s coordinates (the round's window).
+                nonlocal window, current
+                here = window
+
+                def to_here(m, w):
+                    return m if w == here else here.model_in(w.model_out(m))
+
+                if resume is not None:
+                    resume = (to_here(resume["reference"], resume["window"]),
+                              tuple(resume["order"]))
+                try:
+                    found, window = stage(run, here, to_here(start, base), density, name, tol,
+                                          stationary, resume, used, at_rest, lookup=current,
+                                          inner=True)
+                except SegmentationError:
+                    current = None  # (it may have left another window's lookup: built anew)
+                    raise
+                current = run.lookup
+                return found if window == base else base.model_in(window.model_out(found))
+
+            def image_energy(m, order):
+                # the image energy of ``m`` (``base``'s coordinates) on the current lookup
+                m = m if window == base else window.model_in(base.model_out(m))
+                return FluxTerm(m, current, weight=1.0, order=order, closed=True).value(
+                    m.params)
+
+            model = base.model_out(finer_grids(run, base.model_in(model), p, advance,
+                                               image_energy))
+            window = run.last["window"]
         # The result's energy: its record (lookup from these, reference, order).
         final = run.last
     # The last pass of the loop rasterized the final surface (and checked it is not empty).
@@ -314,7 +362,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
     if final is not None:
         record = {**options, "intensity": intensity.to_dict(),
-                  "window": [list(final_window.lo), list(final_window.hi)],
+                  "window": [list(final["window"].lo), list(final["window"].hi)],
                   "round_start": round_start.to_dict(), "stage": final["stage"],
                   "cuts": {str(end): cut.to_dict() for end, cut in cuts.items()},
                   "reference": final["reference"].to_dict(), "order": final["order"]}
@@ -341,7 +389,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                          run.timings, "bright" if polarity > 0 else "dark", init, settings)
 
 
-def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
+def finer_grids(run, model: SplineSurface, p, advance, image_energy) -> SplineSurface:
     """Coarse to fine: the last stage again on finer control grids (``p.finer_m``: M1 = M2 for a
     sphere, M1 around a tube, whose M2 stays the one its calibre chose), each started from the
     current surface: a sphere's first finer grid fitted with its poles on
@@ -356,19 +404,16 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     is below ``p.finer_gain``: the next is not tried (docs/design.md, "Coarse to
     fine").
 
-    ``model`` is the last round's stationary result on ``run.lookup``. Each grid runs to the
-    interim tolerance (``p.interim_tol``): only the grid kept last is the result, which
-    :func:`polish` takes on to the final tolerance, and the test is then asked again of
-    the polished surface against the surface it refined (a leak that had begun goes on while it
-    is polished): refused, the grid before is polished instead, down to the last round's
-    surface. Returns the result; ``run.last`` is its stage's."""
+    ``model`` is the last round's stationary result. ``advance(start, name, tol=None,
+    stationary=False, resume=None, used=0, at_rest=True)`` runs a stage of the last round's
+    energy from ``start`` (in windows that follow it as the round's did) and returns its
+    surface; ``image_energy(model, order)`` is a surface's image energy on the current window's
+    lookup. Each grid runs to the interim tolerance (``p.interim_tol``): only the grid kept last
+    is the result, which :func:`polish` takes on to the final tolerance, and the test is then
+    asked again of the polished surface against the surface it refined (a leak that had begun
+    goes on while it is polished): refused, the grid before is polished instead, down to the
+    last round's surface. Returns the result; ``run.last`` is its stage's."""
     from segsnake.resample import poles_on_long_axis, resample
-
-    lookup = run.lookup
-
-    def image_energy(m: SplineSurface, order: int) -> float:
-        flux = FluxTerm(m, lookup, weight=1.0, order=order, closed=True)
-        return flux.value(m.params)
 
     def refines(finer: SplineSurface, coarser: SplineSurface) -> tuple[bool, dict]:
         moved = departure(coarser, finer, run.sp)
@@ -390,7 +435,7 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
         start = poles_on_long_axis(model, m, m2) \
             if not tube and not kept and p.long_axis_poles else resample(model, m, m2)
         try:
-            finer = run.region(start, lookup, name, p.interim_tol)
+            finer = advance(start, name, p.interim_tol)
         except SegmentationError as exc:
             # (a finer surface that collapsed through itself is no refinement either)
             run.history.append({"stage": name, "kept": False, "error": str(exc)})
@@ -412,7 +457,7 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     while kept:
         finer, run.last, coarser = kept.pop()
         stages = len(run.history)
-        polished = polish(run, finer)
+        polished = polish(run, finer, advance)
         keep, measures = refines(polished, coarser)
         if len(run.history) > stages:  # (a stage at its cap is not polished: kept as it was)
             run.history[-1].update(**measures, kept=keep)
@@ -422,19 +467,18 @@ def finer_grids(run, model: SplineSurface, p) -> SplineSurface:
     return model
 
 
-def polish(run, model: SplineSurface) -> SplineSurface:
-    """The result's stage: ``model``, where the last stage (``run.last``, on ``run.lookup``)
-    stopped at the interim tolerance, on from there with the same functional (its reference
-    surface and quadrature order) to the ``tol`` option and stationarity
+def polish(run, model: SplineSurface, advance) -> SplineSurface:
+    """The result's stage: ``model``, where the last stage (``run.last``) stopped at the interim
+    tolerance, on from there with the same functional (its reference surface and quadrature
+    order; ``advance`` as :func:`finer_grids`') to the ``tol`` option and stationarity
     (:func:`segsnake.optimize.stationarity`), its iterations counted against the stage's cap
     (the ``max_iter`` option: one stage, run in two tolerances). A restart from the result's
     record minimizes the same functional and comes back unchanged."""
     last = run.last
     if last["iterations"] >= run.config.max_iter:
         return model  # (the stage ended at its cap: there is nothing left to run)
-    return run.region(model, run.lookup, f"polish: {last['stage']}", stationary=True,
-                      resume=(last["reference"], tuple(last["order"])), at_rest=False,
-                      used=last["iterations"])
+    return advance(model, f"polish: {last['stage']}", stationary=True, resume=last,
+                   at_rest=False, used=last["iterations"])
 
 
 def _centre(model: SplineSurface) -> NDArray:
