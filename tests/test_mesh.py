@@ -11,7 +11,7 @@ import pyvista as pv
 from segsnake.cli import main
 from segsnake.commands.phantom import write_phantom
 from segsnake.io import load_volume
-from segsnake.meshes import write_mesh, write_surface
+from segsnake.meshes import world_mesh, write_mesh, write_surface
 from segsnake.phantoms import make_phantom
 
 
@@ -88,3 +88,38 @@ def test_a_failed_mesh_write_leaves_no_output(tmp_path, rotated, capsys, monkeyp
     err = capsys.readouterr().err
     assert rc == 5 and "b.ply: cannot write (No space left on device)" in err
     assert not (tmp_path / "seg").exists()
+
+
+def test_surface_vtp_holds_the_models_world_triangles_without_pyvista(tmp_path, rotated):
+    # surface.vtp is built from VTK's own classes (pyvista's import cost every run 0.14 s): the
+    # file must read back as the model's default mesh in world mm, the points float32 as before.
+    import subprocess
+    import sys
+
+    from segsnake.config import SegmentConfig
+    from segsnake.meshes import world_triangles
+    from segsnake.pipeline import initial_model
+
+    ph, image = rotated
+    volume = load_volume(image)
+    config = SegmentConfig(center=list(ph.init["center"]), radii=list(ph.init["radii"]))
+    model = initial_model(config, volume.spacing, volume.shape)
+    path = tmp_path / "surface.vtp"
+    write_surface(str(path), model, volume)
+    points, tris = world_triangles(model, volume)
+    vtp = pv.read(path)
+    assert vtp.points.dtype == np.float32
+    np.testing.assert_array_equal(vtp.points, points)
+    assert vtp.is_all_triangles
+    np.testing.assert_array_equal(vtp.faces.reshape(-1, 4)[:, 1:], tris)
+    np.testing.assert_array_equal(vtp.points, world_mesh(model, volume).points)
+    # and writing it loads no pyvista (the STL/OBJ/PLY writer still does)
+    code = ("import sys; from segsnake.io import load_volume; "
+            "from segsnake.meshes import write_surface; "
+            "from segsnake.surfaces import SphereModel; "
+            f"v = load_volume({str(image)!r}); "
+            "write_surface(sys.argv[1], SphereModel.ellipsoid((10, 10, 10), (4, 3, 2)), v); "
+            "print('pyvista' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "s.vtp")],
+                         capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "False"
