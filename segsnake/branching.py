@@ -36,7 +36,6 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from segsnake.profile import ring_centroids
 from segsnake.region import IntensityModel, RegionParams, region_density
 from segsnake.surfaces import CylinderModel
 
@@ -168,6 +167,10 @@ def find_cuts(model: CylinderModel, image_s: NDArray, spacing: Sequence[float],
         Sections every this many mm of the centerline (default: half the finest voxel size:
         just past a division the branches are a second piece over a fraction of a mm only).
     """
+    # (here: every region run imports this module, a sphere's never calls this, and
+    # segsnake.profile with its scipy.interpolate is a tube's)
+    from segsnake.profile import ring_centroids
+
     sp = np.asarray(spacing, dtype=float)
     step = 0.5 * float(sp.min()) if step_mm is None else float(step_mm)
     # the centerline's arc length on a fine grid, to step along it evenly

@@ -281,7 +281,6 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     """:func:`segment_file` once the output directory is locked."""
     from segsnake.io import load_volume
     from segsnake.measure import closed_area
-    from segsnake.metrics import evaluate_masks
     from segsnake.pipeline import segment_volume
 
     t0 = time.perf_counter()
@@ -351,6 +350,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     if quality:
         summary["quality"] = quality
     if truth is not None:
+        from segsnake.metrics import evaluate_masks  # (here: only a run with a truth uses it)
+
         summary["truth_label"] = truth_label
         metrics = evaluate_masks(result.mask, truth, volume.spacing)
         summary.update({k: (float(v) if np.isfinite(v) else None) for k, v in metrics.items()})
