@@ -41,16 +41,8 @@ def world_triangles(model, volume) -> tuple[np.ndarray, np.ndarray]:
 
 
 def world_mesh(model, volume):
-    """The model's triangle mesh (``pyvista.PolyData``) with float32 world-mm points
-    (:func:`world_triangles`).
-
-    Parameters
-    ----------
-    model : SplineSurface
-        The snake, in mm of scaled index space.
-    volume : Volume
-        The image: its spacing and affine map the model to world coordinates.
-    """
+    """The model's triangle mesh (``pyvista.PolyData``) with float32 world-mm points: the
+    triangles of :func:`world_triangles` (same parameters)."""
     import pyvista as pv
 
     points, tris = world_triangles(model, volume)
