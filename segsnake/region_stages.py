@@ -97,17 +97,19 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     run.timings["edge_map_s"] = time.perf_counter() - t0
 
     def stage(on, window, start, density, name, tol=None, stationary=False, resume=None,
-              used=0, at_rest=True, lookup=None, inner=False):
+              used=0, at_rest=True, reuse=False, inner=False):
         # One stage of the run ``on`` (the image's grid, or the growth passes' coarser one) in
         # a window of its grid around the surface; while its surface comes near a face of the
         # window (which holds it back from then on), on from there in a window around both
         # (segsnake.window). Returns the surface and the window it ended in; ``on.lookup`` is
-        # that window's lookup, and ``on.last["window"]`` the window. ``lookup``: the window's,
-        # already built (a later stage of the same energy: the finer grids). ``inner``: the
+        # that window's lookup, and ``on.last["window"]`` the window. ``reuse``: ``on.lookup``
+        # is the window's, already built (a later stage of the same energy: the finer grids;
+        # held only there, so that a grown window's is built after it is freed). ``inner``: the
         # surfaces, given and returned, are in their windows' coordinates. ``used``, ``at_rest``:
         # as :func:`segsnake.stage.run_stage`'s.
         margin = p.window_mm
         start = start if inner else window.model_in(start)
+        lookup = on.lookup if reuse else None
         while True:
             if lookup is None:
                 on.lookup = None  # (the last stage's: not needed while this one's is built)
@@ -313,7 +315,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         # restart's record names the result's last stage, after which its schedule had ended)
         if restart is None and config.coarse_to_fine and config.m1 is None \
                 and (config.m2 is None or model.kind == "cylinder"):
-            base, current = window, run.lookup  # (the window the stages run in now, its lookup)
+            base, built = window, True  # (the window the stages run in; run.lookup is its)
 
             def advance(start, name, tol=None, stationary=False, resume=None, used=0,
                         at_rest=True):
@@ -321,7 +323,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 # that follow it as the round's did, on from the current window's lookup;
                 # ``resume``: the record of the stage whose functional it goes on with.
                 # Surfaces in ``base``'s coordinates (the round's window).
-                nonlocal window, current
+                nonlocal window, built
                 here = window
 
                 def to_here(m, w):
@@ -330,20 +332,17 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 if resume is not None:
                     resume = (to_here(resume["reference"], resume["window"]),
                               tuple(resume["order"]))
-                try:
-                    found, window = stage(run, here, to_here(start, base), density, name, tol,
-                                          stationary, resume, used, at_rest, lookup=current,
-                                          inner=True)
-                except SegmentationError:
-                    current = None  # (it may have left another window's lookup: built anew)
-                    raise
-                current = run.lookup
+                # (a stage that fails may leave another window's lookup: the next builds anew)
+                reuse, built = built, False
+                found, window = stage(run, here, to_here(start, base), density, name, tol,
+                                      stationary, resume, used, at_rest, reuse=reuse, inner=True)
+                built = True
                 return found if window == base else base.model_in(window.model_out(found))
 
             def image_energy(m, order):
                 # the image energy of ``m`` (``base``'s coordinates) on the current lookup
                 m = m if window == base else window.model_in(base.model_out(m))
-                return FluxTerm(m, current, weight=1.0, order=order, closed=True).value(
+                return FluxTerm(m, run.lookup, weight=1.0, order=order, closed=True).value(
                     m.params)
 
             model = base.model_out(finer_grids(run, base.model_in(model), p, advance,
