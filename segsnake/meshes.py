@@ -36,17 +36,21 @@ def world_triangles(model, volume) -> tuple[np.ndarray, np.ndarray]:
         The image: its spacing and affine map the model to world coordinates.
     """
     points, tris = model.triangles()
-    index = np.asarray(points, dtype=np.float64) / np.asarray(volume.spacing)
-    return volume.index_to_world(index).astype(np.float32), np.asarray(tris, dtype=np.int64)
+    return _world_points(points, volume), np.asarray(tris, dtype=np.int64)
 
 
 def world_mesh(model, volume):
-    """The model's triangle mesh (``pyvista.PolyData``) with float32 world-mm points: the
-    triangles of :func:`world_triangles` (same parameters)."""
-    import pyvista as pv
+    """The model's triangle mesh (``pyvista.PolyData``, :meth:`SplineSurface.to_mesh`) with the
+    float32 world-mm points of :func:`world_triangles` (same parameters)."""
+    mesh = model.to_mesh()
+    mesh.points = _world_points(mesh.points, volume)
+    return mesh
 
-    points, tris = world_triangles(model, volume)
-    return pv.PolyData(points, np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
+
+def _world_points(points: np.ndarray, volume) -> np.ndarray:
+    """Points in mm of the volume's scaled index space as float32 world mm."""
+    index = np.asarray(points, dtype=np.float64) / np.asarray(volume.spacing)
+    return volume.index_to_world(index).astype(np.float32)
 
 
 def _vtk_polydata(points: np.ndarray, tris: np.ndarray):

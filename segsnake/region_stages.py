@@ -133,7 +133,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
             if last.get("left"):
                 # Up to here the window's energy was the whole volume's: the stage goes on from
                 # this iterate with the same functional (reference surface, quadrature order).
-                reference = window.model_in(old.model_out(on.last["reference"]))
+                reference = window.model_from(on.last["reference"], old)
                 resume = (reference, tuple(on.last["order"]))
                 used += last["iterations"]
             else:  # (ended near a face it never came near while running: afresh)
@@ -325,23 +325,20 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 # Surfaces in ``base``'s coordinates (the round's window).
                 nonlocal window, built
                 here = window
-
-                def to_here(m, w):
-                    return m if w == here else here.model_in(w.model_out(m))
-
                 if resume is not None:
-                    resume = (to_here(resume["reference"], resume["window"]),
+                    resume = (here.model_from(resume["reference"], resume["window"]),
                               tuple(resume["order"]))
                 # (a stage that fails may leave another window's lookup: the next builds anew)
                 reuse, built = built, False
-                found, window = stage(run, here, to_here(start, base), density, name, tol,
-                                      stationary, resume, used, at_rest, reuse=reuse, inner=True)
+                found, window = stage(run, here, here.model_from(start, base), density, name,
+                                      tol, stationary, resume, used, at_rest, reuse=reuse,
+                                      inner=True)
                 built = True
-                return found if window == base else base.model_in(window.model_out(found))
+                return base.model_from(found, window)
 
             def image_energy(m, order):
                 # the image energy of ``m`` (``base``'s coordinates) on the current lookup
-                m = m if window == base else window.model_in(base.model_out(m))
+                m = window.model_from(m, base)
                 return FluxTerm(m, run.lookup, weight=1.0, order=order, closed=True).value(
                     m.params)
 

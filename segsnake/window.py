@@ -89,6 +89,11 @@ class Window:
         """A model in the window's coordinates back in the volume's."""
         return model.transformed(np.eye(3), self.origin_mm)
 
+    def model_from(self, model: SplineSurface, other: "Window") -> SplineSurface:
+        """A model in ``other``'s coordinates in this window's (the same model, untouched, when
+        the windows are the same: no rounding from a move out and back)."""
+        return model if other == self else self.model_in(other.model_out(model))
+
     def embed(self, mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
         """A mask on the window as a mask on the whole volume (False outside the window)."""
         out = np.zeros(self.full_shape, dtype=bool)

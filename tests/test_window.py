@@ -30,6 +30,11 @@ def test_window_holds_the_surface_and_its_margin_and_moves_models_both_ways():
     assert big.is_whole and win.union(big) == big
     mask = win.embed(np.ones(win.shape, bool))
     assert mask.sum() == np.prod(win.shape) and mask[win.slices].all()
+    # from one window's coordinates to another's; the same model, untouched, within one
+    inside = win.model_in(model)
+    assert win.model_from(inside, win) is inside
+    assert np.allclose(big.model_from(inside, win).params, big.model_in(model).params,
+                       atol=1e-12)
 
 
 def test_reaches_only_the_window_faces_inside_the_volume():
