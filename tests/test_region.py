@@ -199,9 +199,16 @@ def test_a_finer_grid_that_leaks_through_a_neck_is_refused():
     assert not grids[1]["kept"] and grids[1]["departure"] > 5 * RegionParams().finer_departure
     assert res.model.m1 == 9 and dice(res.mask, ball) >= 0.98  # 0.988
     # Kept, the leak runs on into the slab through the finer grids (measured: 0.08).
-    leaked = segment_volume(image, (1.0, 1.0, 1.0), config,
-                            region_params=RegionParams(finer_departure=1e9))
+    kept = RegionParams(finer_departure=1e9)
+    leaked = segment_volume(image, (1.0, 1.0, 1.0), config, region_params=kept)
     assert dice(leaked.mask, ball) < 0.5
+    # Its finer grids ended in windows grown past the round's: a run from the result and its
+    # record rebuilds the window and the energy the last of them ended in, and is at rest.
+    assert any(h.get("window_grown") for h in leaked.history if h["stage"].startswith("grid"))
+    again = segment_volume(image, (1.0, 1.0, 1.0), config, region_params=kept,
+                           init_model=leaked.model, init_record=leaked.settings["restart"])
+    assert again.settings["restart_record"] == "used" and again.iterations == 0
+    assert np.array_equal(again.mask, leaked.mask)
 
 
 def test_a_finer_grid_that_refines_the_surface_is_kept_whatever_its_energy_gain():
