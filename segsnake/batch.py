@@ -888,12 +888,14 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
                             if r.conn.poll():
                                 r.record = r.conn.recv()
                     if r.record is None:
+                        _tidy(r.case)
                         r.record = failure_record(
                             r.case, f"case process {_describe_exit(r.proc.exitcode)}",
                             time_s=elapsed, error_type="CaseCrash", exit_code=1)
                 elif timeout is not None and elapsed >= timeout and r.record is None:
                     r.proc.kill()
                     r.proc.join()
+                    _tidy(r.case)
                     r.record = failure_record(r.case, f"timed out after {timeout:g} s",
                                               time_s=elapsed, error_type="CaseTimeout", exit_code=1)
                 else:
@@ -907,8 +909,19 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
         # Interrupted (Ctrl-C) or failing to write results: take the running cases down with us,
         # first asking them (SIGTERM: each removes its staging files), then by force.
         _stop(running)
+        for r in running:
+            _tidy(r.case)
         alive_r.close()
         alive_w.close()
+
+
+def _tidy(case: dict[str, Any]) -> None:
+    """What a case process that was killed (a timeout, the batch interrupted, a crash) left in its
+    directory: removed now (:func:`tidy_case_dirs`), not by the next run on the directory. Its
+    staging files and an empty case directory go; a commit it was making is completed or undone."""
+    with contextlib.suppress(OSError):
+        out = Path(case["out_dir"])
+        tidy_case_dirs(out.parent, [out.name])
 
 
 def _run_dask(jobs: list[dict[str, Any]], runner: str, address: str,

@@ -153,6 +153,16 @@ def install(*, grace: float | None = GRACE_S, on_exit: Callable[[], None] | None
     reset()
     signal.signal(signal.SIGINT, _handler)
     signal.signal(signal.SIGTERM, _handler)
+    sys.unraisablehook = _unraisable
+
+
+def _unraisable(unraisable: Any) -> None:
+    """An interrupt the handler raised inside a destructor is not printed ("Exception ignored
+    in ...", a traceback on stderr): the flag is set, and :func:`check` raises it again where the
+    run stops. Anything else goes to Python's own hook."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and _flag.is_set():
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 @contextlib.contextmanager

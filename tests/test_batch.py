@@ -58,6 +58,12 @@ def otsu_runner(case: dict) -> dict:
     if name.startswith("slow"):
         time.sleep(0.3)
     if name.startswith("hang"):
+        # (as the pipeline's runner does: outputs are written into a staging directory in the
+        # case's directory, committed at the end)
+        from segsnake.outdir import stage_dir
+
+        Path(case["out_dir"]).mkdir(parents=True, exist_ok=True)
+        (Path(stage_dir(case["out_dir"])) / "mask.nii.gz").write_bytes(b"half")
         time.sleep(60)
     img = nib.load(case["image"])
     data = np.asarray(img.dataobj, dtype=np.float32)
@@ -426,6 +432,8 @@ def test_case_timeout_kills_only_that_case(tmp_path, images):
     assert (report.ok, report.failed_cases) == (1, ["hang"])
     rec = {r["case"]: r for r in read_results(report.results_jsonl)}["hang"]
     assert (rec["error"], rec["error_type"]) == ("timed out after 1 s", "CaseTimeout")
+    # what the killed case had begun to write went with it: no staging files, no empty directory
+    assert not (tmp_path / "out" / "hang").exists()
 
 
 def test_dask_local_cluster_gives_the_same_results_as_the_pool(tmp_path, images):
