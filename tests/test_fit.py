@@ -153,6 +153,18 @@ def test_fit_cli_mesh_and_clouds(tmp_path, capsys):
     assert "3 columns" in capsys.readouterr().err
 
 
+def test_fit_cli_an_unreadable_mesh_is_one_line(tmp_path, capfd):
+    # VTK's readers print what they could not read (its log, Python's logging and a warning:
+    # about twenty lines, measured) and return an empty mesh
+    (tmp_path / "bad.stl").write_text("garbage not a mesh\n")
+    (tmp_path / "empty.ply").write_bytes(b"")
+    for name in ("bad.stl", "empty.ply"):
+        assert main(["fit", str(tmp_path / name), "--out", str(tmp_path / "x.json")]) == 3
+        err = capfd.readouterr().err
+        assert err.count("\n") == 1 and f"{name}: not a mesh pyvista can read" in err, err
+    assert not (tmp_path / "x.json").exists()
+
+
 def _real_mask(name: str):
     folder = os.path.join(os.environ.get("SEGSNAKE_REAL_DATA")
                           or os.path.join(os.path.expanduser("~"), ".cache", "segsnake", "real"),

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
+import warnings
 
 import numpy as np
 
@@ -98,10 +100,20 @@ def _read_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
 
     from segsnake.errors import InputError
 
+    # VTK's readers report a file they cannot read on the terminal (its log, Python's logging,
+    # a warning: about twenty lines) and return an empty mesh: silenced here, said in one line.
+    logging.disable(logging.CRITICAL)
     try:
-        mesh = pv.read(path)
+        with warnings.catch_warnings(record=True) as caught, pv.vtk_verbosity("off"):
+            warnings.simplefilter("always")
+            mesh = pv.read(path)
     except Exception as exc:  # noqa: BLE001 - pyvista/VTK raise many kinds for unreadable files
         raise InputError(f"{path}: not a mesh pyvista can read ({str(exc).splitlines()[0]})") from None
+    finally:
+        logging.disable(logging.NOTSET)
+    if mesh.n_points == 0:
+        why = "the reader failed" if caught else "it is empty"
+        raise InputError(f"{path}: not a mesh pyvista can read ({why})")
     points, faces = _polydata_arrays(mesh)
     if len(faces) == 0:
         raise InputError(f"{path}: the mesh has no triangles")
