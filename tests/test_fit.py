@@ -165,6 +165,23 @@ def test_fit_cli_an_unreadable_mesh_is_one_line(tmp_path, capfd):
     assert not (tmp_path / "x.json").exists()
 
 
+def test_fit_cli_a_cloud_reconstructed_with_a_cut_at_its_bounds(tmp_path, capsys):
+    # pyvista's reconstruction of 1000 random points on a sphere is cut where it touches its
+    # sample volume's bounds (4 open edges at an extreme point): closed, the fit runs; a cloud
+    # with a real gap (a cap of radius 7 mm cut off a sphere of 10) is refused, and said so.
+    p = np.random.default_rng(0).normal(size=(2000, 3))
+    p = 10 * p / np.linalg.norm(p, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "sphere.txt", p[:1000])
+    assert main(["fit", str(tmp_path / "sphere.txt"), "--out", str(tmp_path / "s.json"),
+                 "--m1", "9", "--m2", "9", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["rms_mm"] < 0.5  # measured 0.19
+    np.savetxt(tmp_path / "cut.txt", p[p[:, 2] < 7][:1000])
+    assert main(["fit", str(tmp_path / "cut.txt"), "--out", str(tmp_path / "c.json")]) == 3
+    err = capsys.readouterr().err
+    assert "cut.txt: the surface reconstructed from its 1000 points: the mesh is not closed" in err
+    assert not (tmp_path / "c.json").exists()
+
+
 def _real_mask(name: str):
     folder = os.path.join(os.environ.get("SEGSNAKE_REAL_DATA")
                           or os.path.join(os.path.expanduser("~"), ".cache", "segsnake", "real"),

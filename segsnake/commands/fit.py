@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import warnings
 
@@ -37,6 +38,14 @@ HELP = "fit a deformable sphere to a mask, a closed genus-0 mesh or a point clou
 
 MASK_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
 CLOUD_SUFFIXES = (".npy", ".txt", ".csv", ".xyz", ".pts")
+#: A hole in the surface reconstructed from a point cloud is closed when it is at most this many
+#: point spacings (sqrt(area / points)) across (pyvista's ``fill_holes`` size): the
+#: reconstruction's own cut where the surface touches the bounds of its sample volume, not a gap
+#: in the cloud. Measured (300-2000 random points, five seeds each): every such cut of a sphere's
+#: clouds (4-8 edges at an extreme point, in 13 of its 20) is closed at 1, 2 and 3 spacings; a
+#: sphere of radius 10 with a cap of radius 7 cut off stays open at 1-3 in all 20 clouds (at 5 in
+#: 16, at 8 in 10).
+HOLE_SPACINGS = 3.0
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -184,9 +193,19 @@ def run(args: argparse.Namespace) -> int:
                 import pyvista as pv
 
                 info.update(input_kind="point cloud (meshed by pyvista reconstruct_surface)")
-                points, faces = _polydata_arrays(pv.PolyData(cloud).reconstruct_surface())
-                result = fit_mesh(points, faces, m1=args.m1, m2=args.m2,
-                                  rms_target=args.rms_target, samples=cloud)
+                surface = pv.PolyData(cloud).reconstruct_surface().triangulate().clean()
+                if surface.n_open_edges:
+                    # (HOLE_SPACINGS: the reconstruction's cut at its bounds is closed, a gap in
+                    # the cloud is refused below)
+                    spacing = math.sqrt(surface.area / len(cloud))
+                    surface = surface.fill_holes(HOLE_SPACINGS * spacing).clean()
+                points, faces = _polydata_arrays(surface)
+                try:
+                    result = fit_mesh(points, faces, m1=args.m1, m2=args.m2,
+                                      rms_target=args.rms_target, samples=cloud)
+                except TopologyError as exc:
+                    raise InputError(f"{args.input}: the surface reconstructed from its "
+                                     f"{len(cloud)} points: {exc}") from None
         else:
             info.update(input_kind="mesh")
             points, faces = _read_mesh(args.input)
