@@ -158,8 +158,12 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
         if config.radii is not None:
             radii = lengths(config.radii, "--radii")
             if config.world and world_axes is not None:
-                # Radii along the world axes: map them through the affine's inverse.
+                # Radii along the world axes: map them through the affine's inverse. (A grid
+                # whose affine mirrors, as a LAS image's does, mirrors the axes too: the same
+                # ellipsoid, parameterized inside out. One semi-axis reversed turns it back.)
                 axes = np.diag(sp) @ world_axes @ np.diag(radii)
+                if np.linalg.det(axes) < 0:
+                    axes[:, 0] *= -1
             else:
                 axes = np.diag(radii)
         if center is None or config.radii is None:

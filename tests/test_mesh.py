@@ -123,3 +123,34 @@ def test_surface_vtp_holds_the_models_world_triangles_without_pyvista(tmp_path, 
     run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "s.vtp")],
                          capture_output=True, text=True, check=True)
     assert run.stdout.strip() == "False"
+
+
+def _signed_volume(mesh) -> float:
+    """The volume a closed triangle mesh encloses, positive when its triangles face outward."""
+    tris = np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]
+    p = np.asarray(mesh.points, dtype=np.float64)
+    return float(np.einsum("ij,ij->i", p[tris[:, 0]], np.cross(p[tris[:, 1]], p[tris[:, 2]]))
+                 .sum() / 6)
+
+
+def test_a_mirrored_grid_gives_outward_surfaces_and_a_world_start(tmp_path, capsys):
+    # A LAS grid (the affine's determinant negative, as FSL's MNI templates and many DICOM
+    # conversions have): the mirror once turned a --world start inside out (exit 4, "the snake
+    # collapsed or turned inside out") and every written surface inward.
+    import nibabel as nib
+
+    ph = make_phantom("ball", seed=2, shape=(32, 32, 32), noise=0.05)
+    affine = np.diag([-1.0, 1.0, 1.0, 1.0])
+    affine[0, 3] = 31.0
+    nib.save(nib.Nifti1Image(ph.image, affine), tmp_path / "las.nii.gz")
+    nib.save(nib.Nifti1Image(ph.truth.astype(np.uint8), affine), tmp_path / "truth.nii.gz")
+    centre = affine[:3, :3] @ np.asarray(ph.init["center"], float) + affine[:3, 3]
+    rc = main(["segment", str(tmp_path / "las.nii.gz"), "--out", str(tmp_path / "seg"), "-q",
+               "--world", "--center", *map(str, centre), "--radii", *map(str, ph.init["radii"]),
+               "--truth", str(tmp_path / "truth.nii.gz"), "--mesh", "ball.stl"])
+    assert rc == 0, capsys.readouterr().err
+    summary = __import__("json").loads((tmp_path / "seg" / "snake.json").read_text())["summary"]
+    assert summary["dice"] >= 0.97
+    for name in ("surface.vtp", "ball.stl"):
+        mesh = pv.read(tmp_path / "seg" / name)
+        assert _signed_volume(mesh) == pytest.approx(summary["volume_mm3"], rel=0.02), name
