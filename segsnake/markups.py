@@ -100,7 +100,8 @@ def read_control_points(path: str) -> tuple[NDArray, list[dict]]:
 
 
 def read_text(path: str, what: str) -> str:
-    """A UTF-8 text file's content; every way reading it fails is one :class:`InputError` line.
+    """A UTF-8 text file's content (a byte-order mark, as Excel's "CSV UTF-8" writes, dropped);
+    every way reading it fails is one :class:`InputError` line.
 
     Parameters
     ----------
@@ -110,7 +111,7 @@ def read_text(path: str, what: str) -> str:
         What the file should be, for the messages ("markups file", "centerline file").
     """
     try:
-        with open(path, encoding="utf-8", newline="") as fh:
+        with open(path, encoding="utf-8-sig", newline="") as fh:
             return fh.read()
     except FileNotFoundError:
         raise InputError(f"{path}: no such {what}") from None

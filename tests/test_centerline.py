@@ -126,6 +126,11 @@ def test_csv_columns_in_any_order_and_a_fiducial_list(tmp_path):
     np.testing.assert_array_equal(found.points, [[4, 12, 3], [8, 13, 5]])
     np.testing.assert_array_equal(found.radii, [2.5, 2.0])
     assert not found.world
+    # Excel's "CSV UTF-8" starts the file with a byte-order mark
+    (tmp_path / "excel.csv").write_bytes("\ufeffZ, x,Radius,y\n3,4,2.5,12\n5,8,2,13\n"
+                                         .encode("utf-8"))
+    np.testing.assert_array_equal(read_centerline(str(tmp_path / "excel.csv")).points,
+                                  found.points)
     fiducials = read_centerline(str(write_curve(tmp_path / "f.mrk.json", WORLD, "LPS",
                                                 kind="Fiducial")))
     np.testing.assert_allclose(fiducials.points, WORLD, atol=1e-12)  # RAS, in order
