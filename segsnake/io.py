@@ -324,6 +324,14 @@ def _one_line(exc: BaseException) -> str:
     return msg[:200]
 
 
+class _SeveralVolumes(InputError):
+    """A 4D image of several volumes, read without saying which (``volumes``: how many)."""
+
+    def __init__(self, message: str, volumes: int) -> None:
+        super().__init__(message)
+        self.volumes = volumes
+
+
 def _spatial_shape(
     path: str, shape: tuple[int, ...], volume_index: int | None,
 ) -> tuple[tuple[int, int, int], int | None]:
@@ -343,9 +351,9 @@ def _spatial_shape(
     if len(shp) == 4:
         nvol = shp[3]
         if volume_index is None:
-            raise InputError(
+            raise _SeveralVolumes(
                 f"{path}: is a 4D image with {nvol} volumes; "
-                f"choose one with --volume N (0..{nvol - 1})"
+                f"choose one with --volume N (0..{nvol - 1})", nvol
             )
         if not 0 <= int(volume_index) < nvol:
             raise InputError(f"{path}: --volume {volume_index} is out of range (0..{nvol - 1})")
@@ -425,6 +433,7 @@ def load_volume(
     volume_index: int | None = None,
     nan: str = "refuse",
     bytes_per_voxel: float | None = PIPELINE_BYTES_PER_VOXEL,
+    one_of_several: bool = True,
 ) -> Volume:
     """Read and validate a 3D image.
 
@@ -442,6 +451,10 @@ def load_volume(
     bytes_per_voxel : float or None
         Memory guard: the image is refused before its data are read if
         ``voxels x bytes_per_voxel`` exceeds physical memory (None: no check).
+    one_of_several : bool
+        Whether the caller can say which volume of a 4D image it means (``volume_index``);
+        False (a mask, a truth, a grid to match): a 4D image of several volumes is refused as
+        such, without pointing to a choice the command does not offer.
 
     Returns
     -------
@@ -473,6 +486,11 @@ def load_volume(
                 vol = _load_nibabel(spath, volume_index, nan, bytes_per_voxel)
             else:
                 vol = _load_sitk(spath, volume_index, nan, bytes_per_voxel)
+    except _SeveralVolumes as exc:
+        if one_of_several:
+            raise
+        raise InputError(f"{spath}: is a 4D image with {exc.volumes} volumes; this input must "
+                         f"be one 3D volume (save the one you mean as a 3D file)") from None
     except InputError:
         raise
     except MemoryError:

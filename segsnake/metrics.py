@@ -373,7 +373,7 @@ def evaluate_masks(
 def _load(path: Path) -> tuple[NDArray, NDArray[np.float64], tuple[float, ...]]:
     """Array, affine and spacing of a mask file (InputError naming the file on any problem)."""
     # Two masks plus a few distance maps: far below the segmentation pipeline's memory need.
-    vol = load_volume(path, bytes_per_voxel=48.0)
+    vol = load_volume(path, bytes_per_voxel=48.0, one_of_several=False)
     return vol.data, np.asarray(vol.affine, dtype=float), tuple(vol.spacing)
 
 

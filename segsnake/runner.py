@@ -463,7 +463,7 @@ def _render_locked(snake_path, image_path, out_dir, mesh, overwrite, names, t_st
 
     world = load_snake(snake_path)
     # Only the grid is needed: NaN voxels do not stop a render (they are reported).
-    volume = load_volume(image_path, nan="fill")
+    volume = load_volume(image_path, nan="fill", one_of_several=False)
     model = image_from_world(world, volume.affine, volume.spacing)
     mask = rasterize(model, volume.shape, volume.spacing)
     if not mask.any():
@@ -534,7 +534,7 @@ def _load_truth(path: str, volume, label: int | None, truth_label_option: str
     from segsnake.io import load_volume
     from segsnake.labels import truth_mask
 
-    truth = load_volume(path, bytes_per_voxel=None)
+    truth = load_volume(path, bytes_per_voxel=None, one_of_several=False)
     if truth.shape != volume.shape or not np.allclose(truth.affine, volume.affine, atol=1e-4):
         raise InputError(f"{path}: truth mask is not on the grid of {volume.path} "
                          f"(shape {truth.shape} vs {volume.shape} or a different affine)")

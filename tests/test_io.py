@@ -97,6 +97,10 @@ def test_four_d_volumes(tmp_path):
     path = write_nifti(tmp_path / "4d.nii.gz", data)
     with pytest.raises(InputError, match=r"4D image with 3 volumes; choose one with --volume N"):
         load_volume(path)
+    # an input whose command offers no choice (a truth, a mask to evaluate): refused as such
+    with pytest.raises(InputError, match=r"4D image with 3 volumes; this input must be one 3D "
+                                         r"volume \(save the one you mean as a 3D file\)$"):
+        load_volume(path, one_of_several=False)
     vol = load_volume(path, volume_index=2)
     assert np.array_equal(vol.data, data[..., 2])
     with pytest.raises(InputError, match="out of range"):

@@ -133,7 +133,7 @@ def _mask(path: str, label: int | None):
     from segsnake.errors import InputError
     from segsnake.io import load_volume
 
-    volume = load_volume(path, bytes_per_voxel=None)
+    volume = load_volume(path, bytes_per_voxel=None, one_of_several=False)
     mask = volume.data == label if label is not None else volume.data != 0
     if not mask.any():
         what = f"label {label}" if label is not None else "non-zero voxel"

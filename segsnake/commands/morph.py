@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     if args.like:
         from segsnake.io import load_volume
 
-        like = load_volume(args.like, bytes_per_voxel=None)
+        like = load_volume(args.like, bytes_per_voxel=None, one_of_several=False)
     try:
         taus, shapes = morph(a, b, args.steps, args.path, args.align)
     except ValueError as exc:
