@@ -47,6 +47,11 @@ PROFILE_NAME = "profile.csv"
 # stay within a few times the volume (bounded time), and a scale near the whole image is
 # already far outside any sensible use (the detector's scale is about a boundary's thickness).
 MAX_SCALE_FRACTION = 0.25
+#: Peak bytes of the optimizer per squared control point (the snake's dense L2 metric on its
+#: parameters, :func:`segsnake.optimize.surface_metric`: the control grid's mass matrix, the
+#: metric, its factor and the products' temporaries): measured 4.4 at M1 = M2 = 60 and 4.7 at 80
+#: (peak memory above the run's without them), times 8 bytes a double.
+METRIC_BYTES_PER_POINT2 = 5 * 8
 COORDINATES = ("model control points in mm of scaled index space (i*sx, j*sy, k*sz); surface.vtp "
                "in world coordinates (the image affine)")
 
@@ -184,6 +189,18 @@ def check_sizes(config, volume) -> None:
                               f"allows ({limit:g} mm, {MAX_SCALE_FRACTION:g} x its longest extent "
                               f"of {extent_mm:g} mm); use --scale {limit:g} or less (about the "
                               f"thickness of the boundary you segment)")
+    if config.m1 is not None or config.m2 is not None:
+        # (without them coarse to fine stays at the schedule's grids, a few MB)
+        from segsnake.io import fmt_bytes, memory_limit_bytes
+
+        m1, m2 = config.m1 or 9, config.m2 or 9
+        need = METRIC_BYTES_PER_POINT2 * (m1 * (m2 + 3)) ** 2
+        total, source = memory_limit_bytes()
+        if total > 0 and need > total:
+            raise ConfigError(f"{volume.path}: --m1 {m1} --m2 {m2} needs about {fmt_bytes(need)} "
+                              f"of memory for the snake's {m1 * (m2 + 3)} control points, more "
+                              f"than {source} ({fmt_bytes(total)}); give a smaller M, or none "
+                              f"(coarse to fine then chooses it)")
     # radii/radius are voxels, or mm with world: compare with the extent in the same unit.
     extent = extent_mm if config.world else float(np.max(volume.shape))
     unit = "mm" if config.world else "voxels"

@@ -412,6 +412,27 @@ def test_ulimit_v_below_the_estimate_is_refused_up_front():
            "the address space left under ulimit -v (" in proc.stderr
 
 
+def test_a_control_grid_too_large_for_memory_is_refused_up_front():
+    """--m1 200 --m2 200 once took the machine's memory (the optimizer's dense metric, 61 GB):
+    M1 = M2 = 60 (545 MB) is refused under ulimit -v with 300 MB left, 20 x 20 (8 MB) is not."""
+    code = (
+        "import resource, types\n"
+        "from segsnake.config import SegmentConfig\n"
+        "from segsnake.runner import check_sizes\n"
+        "used = [int(l.split()[1]) * 1024 for l in open('/proc/self/status') "
+        "if l.startswith('VmSize:')][0]\n"
+        f"lim = used + {ADDRESS_SPACE_OVERHEAD} + 300 * 2**20\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (lim, lim))\n"
+        "image = types.SimpleNamespace(path='a.nii', shape=(64, 64, 64), spacing=(1.0, 1.0, 1.0))\n"
+        "check_sizes(SegmentConfig(m1=20, m2=20), image)\n"
+        "check_sizes(SegmentConfig(m1=60, m2=60), image)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert "ConfigError: a.nii: --m1 60 --m2 60 needs about 545.1 MB of memory for the snake's " \
+           "3780 control points, more than the address space left under ulimit -v (" \
+           in proc.stderr, proc.stderr
+
+
 # -- fault injection -------------------------------------------------------------------------------
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
