@@ -166,10 +166,23 @@ def locked(out_dir: str, *, wait: bool = False) -> Iterator[OutputLock]:
     """
     lock = _acquire(out_dir, wait)
     try:
-        recover(out_dir)
-        yield lock
+        with cancel.cleanup_on_exit(lambda: _abandon(out_dir, lock.created)):
+            recover(out_dir)
+            yield lock
     finally:
         lock.release(remove_if_empty=True)
+
+
+def _abandon(out_dir: str, created: list[str]) -> None:
+    """What a run ended at once leaves of its own (:func:`segsnake.cancel.cleanup_on_exit`): its
+    staging directories, then the directories it created if they are empty. (Never inside a
+    commit: the ending waits for it.)"""
+    mine = f"{STAGE_PREFIX}{os.getpid()}-"
+    with contextlib.suppress(OSError):
+        for name in os.listdir(out_dir):
+            if name.startswith(mine):
+                shutil.rmtree(os.path.join(out_dir, name), ignore_errors=True)
+    remove_empty_dirs(created)
 
 
 def _is_stage(name: str) -> bool:

@@ -136,6 +136,29 @@ def test_a_signal_inside_a_commit_is_raised_after_it():
             signal.signal(s, h)
 
 
+def test_a_run_the_watchdog_ends_leaves_no_directory_of_its_own(tmp_path):
+    """The watchdog ends a run whose main thread does not unwind (an interrupt during an import
+    is left to it) without the ``finally`` blocks: the output directory the run created, and its
+    staging directory, go anyway (measured before: an empty directory in 2 of 30 interrupts in
+    the first 0.1 s)."""
+    out = tmp_path / "new" / "out"
+    code = (
+        "import os, signal, time\n"
+        "from segsnake import cancel, outdir\n"
+        "cancel.install(grace=0.2)\n"
+        f"with outdir.locked({str(out)!r}):\n"
+        f"    open(os.path.join(outdir.stage_dir({str(out)!r}), 'mask.nii.gz'), 'w').close()\n"
+        "    try:\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        time.sleep(1)\n"
+        "    except KeyboardInterrupt:\n"
+        "        pass  # (swallowed, as inside an import: the watchdog ends the process)\n"
+        "    time.sleep(5)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, proc.stderr
+    assert not (tmp_path / "new").exists()
+
+
 class _RaisesInDel:
     """An object whose destructor raises (where the handler's interrupt can land: nibabel's
     ArrayProxy.__del__ in a batch case, measured once in about 40 interrupts)."""
