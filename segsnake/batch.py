@@ -897,7 +897,8 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
                     r.proc.join()
                     _tidy(r.case)
                     r.record = failure_record(r.case, f"timed out after {timeout:g} s",
-                                              time_s=elapsed, error_type="CaseTimeout", exit_code=1)
+                                              time_s=elapsed, error_type="CaseTimeout",
+                                              exit_code=4)  # (no result: not a bug)
                 else:
                     still.append(r)
                     continue

@@ -329,6 +329,8 @@ def test_failed_cases_exit_6_with_the_counts_and_warnings_reach_stderr(tmp_path,
     assert main(["batch", str(path), "--runner", RUNNER, "--overwrite", "--quiet"]) == 6
     out, err = capsys.readouterr()
     assert out == "" and "warn1 looks odd" in err  # warnings even with --quiet
+    # ... and each failed case with its message (the progress, which lists them, is off)
+    assert err.splitlines()[-2].startswith("segsnake batch: case corrupt failed: ")
 
 
 def test_sigkill_midway_then_resume_records_every_case_exactly_once(tmp_path, images):
@@ -431,7 +433,8 @@ def test_case_timeout_kills_only_that_case(tmp_path, images):
     assert time.monotonic() - t0 < 20
     assert (report.ok, report.failed_cases) == (1, ["hang"])
     rec = {r["case"]: r for r in read_results(report.results_jsonl)}["hang"]
-    assert (rec["error"], rec["error_type"]) == ("timed out after 1 s", "CaseTimeout")
+    assert (rec["error"], rec["error_type"], rec["exit_code"]) == \
+        ("timed out after 1 s", "CaseTimeout", 4)
     # what the killed case had begun to write went with it: no staging files, no empty directory
     assert not (tmp_path / "out" / "hang").exists()
 

@@ -7,6 +7,7 @@ appended and fsynced as cases finish, ``--resume``) are described in :mod:`segsn
 from __future__ import annotations
 
 import argparse
+import sys
 
 from segsnake.commands import positive_int
 from segsnake.commands.reporting import add_output_options, emit, progress_off, warn
@@ -85,6 +86,14 @@ def run(args: argparse.Namespace) -> int:
     lines = [f"{report.total} cases: {report.ok} ok, {report.failed} failed ({ran} run{skipped}); "
              f"results in {report.results_csv}"]
     if report.failed:
+        if progress_off(args):
+            # (the progress lists each failed case with its message as it ends; without it,
+            # they are listed here, before the error line)
+            from segsnake.batch import read_results
+
+            errors = {r.get("case"): r.get("error") for r in read_results(report.results_jsonl)}
+            for name in report.failed_cases:
+                sys.stderr.write(f"segsnake batch: case {name} failed: {errors.get(name)}\n")
         if not args.json:  # with --json the error object carries the counts instead
             emit(args, counts, lines)
         raise BatchError(f"{report.failed} of {report.total} cases failed "
