@@ -684,13 +684,31 @@ def _write_outputs(out_dir: str, volume, mask, model, snake: dict[str, Any], ove
                 current = os.path.join(out_dir, PROFILE_NAME)
                 _write_profile(os.path.join(stage, PROFILE_NAME), profile)
             current = out_dir
-            # A new set without a profile (a sphere) replaces an earlier cylinder's profile too.
-            outdir.commit(stage, out_dir, overwrite, names, remove=(PROFILE_NAME,))
+            # A new set without a profile (a sphere) replaces an earlier cylinder's profile too,
+            # and one without the earlier set's mesh (or with another) its mesh.
+            outdir.commit(stage, out_dir, overwrite, names,
+                          remove=(PROFILE_NAME, *_earlier_mesh(out_dir, mesh)))
         except OSError as exc:
             raise OutputError(f"{current}: cannot write ({exc.strerror or exc})") from None
     finally:
         if stage is not None:
             shutil.rmtree(stage, ignore_errors=True)
+
+
+def _earlier_mesh(out_dir: str, mesh: str | None) -> tuple[str, ...]:
+    """The mesh file of the set already in ``out_dir`` (its ``snake.json``'s ``settings.mesh``),
+    unless it is ``mesh``, the new set's: an output of the set the new one replaces."""
+    from segsnake.meshes import mesh_suffix
+
+    try:
+        with open(os.path.join(out_dir, "snake.json"), encoding="utf-8") as fh:
+            earlier = json.load(fh).get("settings", {}).get("mesh")
+    except (OSError, ValueError, AttributeError):
+        return ()
+    if not isinstance(earlier, str) or earlier == mesh or os.path.basename(earlier) != earlier \
+            or mesh_suffix(earlier) is None:
+        return ()
+    return (earlier,)
 
 
 def _write_profile(path: str, profile) -> None:

@@ -63,6 +63,18 @@ def test_segment_writes_the_mesh_with_the_other_outputs(tmp_path, rotated, capsy
     rc = main(["segment", str(image), "--out", str(out), "--mesh", "ball.stl", *init])
     err = capsys.readouterr().err
     assert rc == 5 and "ball.stl: already exists" in err
+    # A new set over it (--overwrite) replaces the earlier set's mesh, which its snake.json
+    # names: with another mesh, or none, the old one goes (it stayed before, beside a result
+    # it did not show); a file of the user's is kept.
+    assert main(["segment", str(image), "--out", str(out), "--overwrite", "--mesh", "ball.stl",
+                 "-q", *init]) == 0
+    (out / "notes.txt").write_text("mine")
+    assert main(["segment", str(image), "--out", str(out), "--overwrite", "-q", "--mesh",
+                 "b.ply", *init]) == 0
+    assert sorted(os.listdir(out)) == sorted(["mask.nii.gz", "surface.vtp", "snake.json",
+                                              "qc.png", "b.ply", "notes.txt"])
+    assert main(["segment", str(image), "--out", str(out), "--overwrite", "-q", *init]) == 0
+    assert "b.ply" not in os.listdir(out) and "notes.txt" in os.listdir(out)
 
 
 @pytest.mark.parametrize("name, problem", [("ball.vtk", "must end in .stl, .obj, .ply"),
