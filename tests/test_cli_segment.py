@@ -747,3 +747,11 @@ def test_exiting_tube_from_its_end_points_has_a_profile_on_every_row(tmp_path, c
     assert rc == 0 and summary["dice"] >= 0.95
     rows = np.loadtxt(out / "profile.csv", delimiter=",", skiprows=1, ndmin=2)
     assert len(rows) > 60 and np.all(np.isfinite(rows))
+
+
+def test_a_phantom_too_large_for_memory_is_refused_up_front(tmp_path, capsys):
+    # (was "out of memory (crop or resample the image first)", naming nothing, exit 3)
+    rc = main(["phantom", "blob", "--shape", "5000", "5000", "5000", "--out", str(tmp_path / "p")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--shape 5000 5000 5000: the phantom needs about 15.9 TB of memory" in err
+    assert not (tmp_path / "p").exists()
