@@ -417,19 +417,24 @@ def test_memory_limits_name_file_estimate_and_limit(tmp_path):
     assert _cgroup_limit_bytes(str(tmp_path / "v1"), str(tmp_path / "cg1")) == 1 << 30
 
 
+def _under_address_space(headroom_mb: int, imports: str, body: str
+                         ) -> subprocess.CompletedProcess:
+    """Run ``body`` in a fresh interpreter, after ``imports``, with RLIMIT_AS set to what it
+    then uses, the overhead and ``headroom_mb`` MB."""
+    code = ("import resource\n" + imports +
+            "used = [int(l.split()[1]) * 1024 for l in open('/proc/self/status') "
+            "if l.startswith('VmSize:')][0]\n"
+            f"lim = used + {ADDRESS_SPACE_OVERHEAD} + {headroom_mb} * 2**20\n"
+            "resource.setrlimit(resource.RLIMIT_AS, (lim, lim))\n" + body)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+
+
 def test_ulimit_v_below_the_estimate_is_refused_up_front():
     """RLIMIT_AS set to what this process uses + the overhead + 100 MB: 256^3 (2.5 GB) is
     refused, naming ulimit -v."""
-    code = (
-        "import resource\n"
-        "from segsnake.io import check_memory\n"
-        "used = [int(l.split()[1]) * 1024 for l in open('/proc/self/status') "
-        "if l.startswith('VmSize:')][0]\n"
-        f"lim = used + {ADDRESS_SPACE_OVERHEAD} + 100 * 2**20\n"
-        "resource.setrlimit(resource.RLIMIT_AS, (lim, lim))\n"
-        "check_memory((64, 64, 64), 160.0, what='small.nii')\n"
-        "check_memory((256, 256, 256), 160.0, what='big.nii')\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    proc = _under_address_space(100, "from segsnake.io import check_memory\n",
+                                "check_memory((64, 64, 64), 160.0, what='small.nii')\n"
+                                "check_memory((256, 256, 256), 160.0, what='big.nii')\n")
     assert proc.returncode == 1
     assert "InputError: big.nii: a 256x256x256 volume needs about 2.5 GB of memory, more than " \
            "the address space left under ulimit -v (" in proc.stderr
@@ -438,18 +443,13 @@ def test_ulimit_v_below_the_estimate_is_refused_up_front():
 def test_a_control_grid_too_large_for_memory_is_refused_up_front():
     """--m1 200 --m2 200 once took the machine's memory (the optimizer's dense metric, 61 GB):
     M1 = M2 = 60 (545 MB) is refused under ulimit -v with 300 MB left, 20 x 20 (8 MB) is not."""
-    code = (
-        "import resource, types\n"
+    proc = _under_address_space(300, (
+        "import types\n"
         "from segsnake.config import SegmentConfig\n"
-        "from segsnake.runner import check_sizes\n"
-        "used = [int(l.split()[1]) * 1024 for l in open('/proc/self/status') "
-        "if l.startswith('VmSize:')][0]\n"
-        f"lim = used + {ADDRESS_SPACE_OVERHEAD} + 300 * 2**20\n"
-        "resource.setrlimit(resource.RLIMIT_AS, (lim, lim))\n"
+        "from segsnake.runner import check_sizes\n"), (
         "image = types.SimpleNamespace(path='a.nii', shape=(64, 64, 64), spacing=(1.0, 1.0, 1.0))\n"
         "check_sizes(SegmentConfig(m1=20, m2=20), image)\n"
-        "check_sizes(SegmentConfig(m1=60, m2=60), image)\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+        "check_sizes(SegmentConfig(m1=60, m2=60), image)\n"))
     assert proc.returncode == 1
     assert "ConfigError: a.nii: --m1 60 --m2 60 needs about 545.1 MB of memory for the snake's " \
            "3780 control points, more than the address space left under ulimit -v (" \
