@@ -75,10 +75,10 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     # Lengths that must hold voxels, however large: the passes' band two of the finest voxels,
     # the shell's gap one (the outside is read beyond the partial-volume layer) and the shell
     # one more. (Measured on a ball of radius 9.6 voxels relabelled from 1 to 10 mm voxels: Dice
-    # 0.987 at 1 mm; with the millimetre values alone 0.970, 0.930 and 0.920 at 2, 3 and 5 mm,
-    # the outside read in the partial-volume layer, and from 6 mm no growth ("no boundary
-    # found"); with these 0.987-0.990 at every size. The same at the benchmark's voxels, whose
-    # finest axis is 1 mm or less.)
+    # 0.987 at 1 mm; with the millimetre values alone 0.970, 0.930 and 0.924 at 2, 3 and 4 mm,
+    # the outside read in the partial-volume layer, and from 5 mm no voxel in the shell (exit 4);
+    # with these 0.987-0.990 at every size. The same at the benchmark's voxels, whose finest
+    # axis is 1 mm or less.)
     growth_mm = max(p.growth_mm, 2 * min(sp))
     gap_mm = max(p.shell_gap_mm, min(sp))
     shell_mm = max(p.shell_mm, gap_mm + min(sp))

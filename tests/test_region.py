@@ -469,8 +469,8 @@ def test_a_result_that_left_its_click_is_warned_about():
 def test_large_voxels_read_the_outside_beyond_the_partial_volume_layer(voxel_mm):
     # A ball of radius 9.6 voxels relabelled to large voxels. With the shell's and the passes'
     # millimetre lengths alone the outside was read in the partial-volume layer (3 mm: Dice
-    # 0.930, the surface half a voxel inside), and at 10 mm the passes could not grow ("no
-    # boundary found"); in voxels they hold: measured 0.989 at both, as at 1 mm (0.987).
+    # 0.930, the surface half a voxel inside), and at 10 mm no voxel lay in the shell (exit 4);
+    # in voxels they hold: measured 0.989 at both, as at 1 mm (0.987).
     ph = make_phantom("ball", seed=3, shape=(32, 32, 32), noise=0.1)
     res = segment_volume(ph.image, (voxel_mm,) * 3, SegmentConfig.from_mapping(ph.init))
     assert dice(res.mask, ph.truth.astype(bool)) >= 0.98
