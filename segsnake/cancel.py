@@ -15,8 +15,7 @@ dropped ("Exception ignored in ..."), so the run goes on. Hence:
   :data:`GRACE_S` of the first signal (it is stuck in C code), and a second signal ends it at
   once: never a traceback, never minutes. A process that ends this way first removes what
   :func:`cleanup_on_exit` registered (its staging directory, an output directory it created and
-  left empty); a commit a second signal cuts short is completed by the next run on that directory
-  (:mod:`segsnake.outdir`).
+  left empty: :mod:`segsnake.outdir`).
 """
 
 from __future__ import annotations
@@ -93,13 +92,9 @@ def _watchdog(grace: float) -> None:
 
 
 def _forced_exit() -> None:
-    """End the process now (the watchdog, a second signal): what :func:`cleanup_on_exit`
-    registered is undone first (not inside a commit, which a second signal may end: its journal
-    needs the staged files, and the next run on the directory completes it), then the
-    ``on_exit`` report."""
-    with _state_lock:
-        committing = _deferring > 0
-    for cleanup in [] if committing else reversed(list(_cleanups)):
+    """End the process now (the watchdog, a second signal; neither inside a commit): what
+    :func:`cleanup_on_exit` registered is undone first, then the ``on_exit`` report."""
+    for cleanup in reversed(list(_cleanups)):
         with contextlib.suppress(Exception):
             cleanup()
     if _on_exit is not None:
