@@ -847,76 +847,92 @@ def _run_local(jobs: list[dict[str, Any]], runner: str, workers: int, timeout: f
     sys_path = list(sys.path)
     # Children read EOF on alive_r when this process dies; alive_w never leaves this process.
     alive_r, alive_w = ctx.Pipe(duplex=False)
-    try:
-        while pending or running:
-            while pending and len(running) < workers:
-                job = pending.popleft()
-                recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child_main, args=(runner, job, sys_path, send, alive_r,
-                                                                threads),
-                                   name=f"segsnake-case-{job['name']}")
-                proc.start()
-                send.close()  # the child holds the only write end: EOF means it is gone
-                running.append(_Running(proc, recv, job, time.monotonic()))
-            waitables: list[Any] = []
-            for r in running:
-                waitables.append(r.proc.sentinel)
-                if r.conn_open:
-                    waitables.append(r.conn)
-            wait_s = None
-            if timeout is not None:
-                now = time.monotonic()
-                wait_s = max(0.0, min(r.started + timeout - now for r in running))
-            ready = set(multiprocessing.connection.wait(waitables, timeout=wait_s))
-            still: list[_Running] = []
-            for r in running:
-                if r.conn_open and r.conn in ready:
-                    try:
-                        r.record = r.conn.recv()
-                    except (EOFError, OSError):
-                        pass
-                    r.conn_open = False
-                elapsed = time.monotonic() - r.started
-                if r.record is not None and r.proc.sentinel not in ready:
-                    # The child sent its record and is on its way out; don't wait on a straggler.
-                    r.proc.join(10)
-                    if r.proc.is_alive():
-                        r.proc.kill()
-                        r.proc.join()
-                    ready.add(r.proc.sentinel)
-                if r.proc.sentinel in ready:
-                    r.proc.join()
-                    if r.record is None and r.conn_open:
-                        with contextlib.suppress(EOFError, OSError):
-                            if r.conn.poll():
-                                r.record = r.conn.recv()
-                    if r.record is None:
-                        _tidy(r.case)
-                        r.record = failure_record(
-                            r.case, f"case process {_describe_exit(r.proc.exitcode)}",
-                            time_s=elapsed, error_type="CaseCrash", exit_code=1)
-                elif timeout is not None and elapsed >= timeout and r.record is None:
-                    r.proc.kill()
-                    r.proc.join()
-                    _tidy(r.case)
-                    r.record = failure_record(r.case, f"timed out after {timeout:g} s",
-                                              time_s=elapsed, error_type="CaseTimeout",
-                                              exit_code=4)  # (no result: not a bug)
-                else:
-                    still.append(r)
-                    continue
-                with contextlib.suppress(OSError):
-                    r.conn.close()
-                on_record(r.record)
-            running = still
-    finally:
-        # Interrupted (Ctrl-C) or failing to write results: take the running cases down with us,
-        # first asking them (SIGTERM: each removes its staging files), then by force.
+
+    def stop_all() -> None:
+        # the running cases taken down and tidied (the batch interrupted, or ended by the
+        # watchdog of segsnake.cancel, which skips this function's finally)
         _stop(running)
         for r in running:
             _tidy(r.case)
+
+    try:
+        with cancel.cleanup_on_exit(stop_all):
+            _run_cases(ctx, pending, running, workers, timeout, runner, sys_path, alive_r,
+                       threads, on_record)
+    finally:
+        # Interrupted (Ctrl-C) or failing to write results: take the running cases down with us,
+        # first asking them (SIGTERM: each removes its staging files), then by force.
+        stop_all()
         alive_r.close()
         alive_w.close()
+
+
+def _run_cases(ctx, pending: deque, running: list["_Running"], workers: int,
+               timeout: float | None, runner: str, sys_path: list[str], alive_r, threads: int,
+               on_record: Callable[[dict[str, Any]], None]) -> None:
+    """:func:`_run_local`'s loop: ``running`` is updated in place (its caller stops what is
+    left in it)."""
+    while pending or running:
+        while pending and len(running) < workers:
+            job = pending.popleft()
+            recv, send = ctx.Pipe(duplex=False)
+            proc = ctx.Process(target=_child_main, args=(runner, job, sys_path, send, alive_r,
+                                                            threads),
+                               name=f"segsnake-case-{job['name']}")
+            proc.start()
+            send.close()  # the child holds the only write end: EOF means it is gone
+            running.append(_Running(proc, recv, job, time.monotonic()))
+        waitables: list[Any] = []
+        for r in running:
+            waitables.append(r.proc.sentinel)
+            if r.conn_open:
+                waitables.append(r.conn)
+        wait_s = None
+        if timeout is not None:
+            now = time.monotonic()
+            wait_s = max(0.0, min(r.started + timeout - now for r in running))
+        ready = set(multiprocessing.connection.wait(waitables, timeout=wait_s))
+        still: list[_Running] = []
+        for r in running:
+            if r.conn_open and r.conn in ready:
+                try:
+                    r.record = r.conn.recv()
+                except (EOFError, OSError):
+                    pass
+                r.conn_open = False
+            elapsed = time.monotonic() - r.started
+            if r.record is not None and r.proc.sentinel not in ready:
+                # The child sent its record and is on its way out; don't wait on a straggler.
+                r.proc.join(10)
+                if r.proc.is_alive():
+                    r.proc.kill()
+                    r.proc.join()
+                ready.add(r.proc.sentinel)
+            if r.proc.sentinel in ready:
+                r.proc.join()
+                if r.record is None and r.conn_open:
+                    with contextlib.suppress(EOFError, OSError):
+                        if r.conn.poll():
+                            r.record = r.conn.recv()
+                if r.record is None:
+                    _tidy(r.case)
+                    r.record = failure_record(
+                        r.case, f"case process {_describe_exit(r.proc.exitcode)}",
+                        time_s=elapsed, error_type="CaseCrash", exit_code=1)
+            elif timeout is not None and elapsed >= timeout and r.record is None:
+                r.proc.kill()
+                r.proc.join()
+                _tidy(r.case)
+                r.record = failure_record(r.case, f"timed out after {timeout:g} s",
+                                          time_s=elapsed, error_type="CaseTimeout",
+                                          exit_code=4)  # (no result: not a bug)
+            else:
+                still.append(r)
+                continue
+            with contextlib.suppress(OSError):
+                r.conn.close()
+            on_record(r.record)
+        running[:] = still
 
 
 def _tidy(case: dict[str, Any]) -> None:
