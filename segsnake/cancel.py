@@ -16,6 +16,9 @@ dropped ("Exception ignored in ..."), so the run goes on. Hence:
   once: never a traceback, never minutes. A process that ends this way first removes what
   :func:`cleanup_on_exit` registered (its staging directory, an output directory it created and
   left empty: :mod:`segsnake.outdir`).
+* A signal that lands in an import is not raised there (it can crash the interpreter): it is
+  left to the next check or the watchdog, unless nothing is registered to undo yet (the
+  start-up's imports), when the process ends at once.
 """
 
 from __future__ import annotations
