@@ -995,6 +995,8 @@ class BatchReport:
     output_dir: str
     results_csv: str
     results_jsonl: str
+    #: each failed case's message (this run's), by name
+    errors: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def all_ok(self) -> bool:
@@ -1130,6 +1132,7 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
         jobs = [c.to_job(out, overwrite=overwrite or resume) for c in todo]
         n_workers = workers or max(1, min(len(jobs), parallel_threads()))
         failed: list[str] = []
+        errors: dict[str, str] = {}
         counts = {"ok": 0}
         bar = ProgressBar(len(spec.cases), label="cases", initial=len(done), quiet=quiet,
                           stream=progress_stream)
@@ -1151,6 +1154,7 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
                 bar.update(1, note)
             else:
                 failed.append(record["case"])
+                errors[record["case"]] = str(record.get("error"))
                 if bar.mode == "bar":  # the message above the bar, the bar stays short
                     bar.message(f"{record['case']} FAILED: {record.get('error')}")
                     bar.update(1, f"{record['case']} FAILED")
@@ -1170,6 +1174,6 @@ def run_batch(spec: BatchSpec | str | os.PathLike[str], *, workers: int | None =
 
     return BatchReport(
         total=len(spec.cases), ok=counts["ok"] + len(done), failed=len(failed), skipped=len(done),
-        failed_cases=failed, output_dir=str(out), results_csv=str(writer.csv),
+        failed_cases=failed, errors=errors, output_dir=str(out), results_csv=str(writer.csv),
         results_jsonl=str(writer.jsonl),
     )

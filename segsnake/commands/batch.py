@@ -89,11 +89,8 @@ def run(args: argparse.Namespace) -> int:
         if progress_off(args):
             # (the progress lists each failed case with its message as it ends; without it,
             # they are listed here, before the error line)
-            from segsnake.batch import read_results
-
-            errors = {r.get("case"): r.get("error") for r in read_results(report.results_jsonl)}
             for name in report.failed_cases:
-                sys.stderr.write(f"segsnake batch: case {name} failed: {errors.get(name)}\n")
+                sys.stderr.write(f"segsnake batch: case {name} failed: {report.errors[name]}\n")
         if not args.json:  # with --json the error object carries the counts instead
             emit(args, counts, lines)
         raise BatchError(f"{report.failed} of {report.total} cases failed "
