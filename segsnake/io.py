@@ -45,6 +45,7 @@ __all__ = [
     "save_mask",
     "save_volume",
     "atomic_write",
+    "beyond_memory",
     "check_memory",
     "check_not_input",
     "total_memory_bytes",
@@ -232,6 +233,17 @@ def memory_limit_bytes() -> tuple[int, str]:
     return min(known) if known else (0, "")
 
 
+def beyond_memory(need: float, total_bytes: int | None = None) -> str | None:
+    """``"more than SOURCE (SIZE)"`` when ``need`` bytes exceed what this process may use
+    (:func:`memory_limit_bytes`, or ``total_bytes``), else None (also when the limit is unknown):
+    the tail of every up-front memory refusal."""
+    if total_bytes is None:
+        total, source = memory_limit_bytes()
+    else:
+        total, source = int(total_bytes), "the memory given"
+    return f"more than {source} ({fmt_bytes(total)})" if 0 < total < need else None
+
+
 def check_memory(
     shape: tuple[int, ...],
     bytes_per_voxel: float = PIPELINE_BYTES_PER_VOXEL,
@@ -268,15 +280,11 @@ def check_memory(
     for s in shape:
         nvox *= max(int(s), 0)
     estimate = int(nvox * float(bytes_per_voxel))
-    if total_bytes is None:
-        total, source = memory_limit_bytes()
-    else:
-        total, source = int(total_bytes), "the memory given"
-    if total > 0 and estimate > total:
+    beyond = beyond_memory(estimate, total_bytes)
+    if beyond is not None:
         dims = "x".join(str(int(s)) for s in shape)
         raise InputError(
-            f"{what}: a {dims} volume needs about {fmt_bytes(estimate)} of memory, "
-            f"more than {source} ({fmt_bytes(total)}); "
+            f"{what}: a {dims} volume needs about {fmt_bytes(estimate)} of memory, {beyond}; "
             "crop the image to the structure or resample it to larger voxels first"
         )
     return estimate

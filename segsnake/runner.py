@@ -191,16 +191,16 @@ def check_sizes(config, volume) -> None:
                               f"thickness of the boundary you segment)")
     if config.m1 is not None or config.m2 is not None:
         # (without them coarse to fine stays at the schedule's grids, a few MB)
-        from segsnake.io import fmt_bytes, memory_limit_bytes
+        from segsnake.io import beyond_memory, fmt_bytes
 
         m1, m2 = config.m1 or 9, config.m2 or 9
         need = METRIC_BYTES_PER_POINT2 * (m1 * (m2 + 3)) ** 2
-        total, source = memory_limit_bytes()
-        if total > 0 and need > total:
+        beyond = beyond_memory(need)
+        if beyond is not None:
             raise ConfigError(f"{volume.path}: --m1 {m1} --m2 {m2} needs about {fmt_bytes(need)} "
-                              f"of memory for the snake's {m1 * (m2 + 3)} control points, more "
-                              f"than {source} ({fmt_bytes(total)}); give a smaller M, or none "
-                              f"(coarse to fine then chooses it)")
+                              f"of memory for the snake's {m1 * (m2 + 3)} control points, "
+                              f"{beyond}; give a smaller M, or none (coarse to fine then chooses "
+                              f"it)")
     # radii/radius are voxels, or mm with world: compare with the extent in the same unit.
     extent = extent_mm if config.world else float(np.max(volume.shape))
     unit = "mm" if config.world else "voxels"

@@ -143,14 +143,13 @@ def run(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     if "shape" in options:
-        from segsnake.io import fmt_bytes, memory_limit_bytes
+        from segsnake.io import beyond_memory, fmt_bytes
 
         need = PHANTOM_BYTES_PER_VOXEL * float(np.prod(np.asarray(options["shape"], dtype=float)))
-        total, source = memory_limit_bytes()
-        if total > 0 and need > total:
+        beyond = beyond_memory(need)
+        if beyond is not None:
             raise ConfigError(f"--shape {' '.join(map(str, options['shape']))}: the phantom needs "
-                              f"about {fmt_bytes(need)} of memory, more than {source} "
-                              f"({fmt_bytes(total)}); give a smaller shape")
+                              f"about {fmt_bytes(need)} of memory, {beyond}; give a smaller shape")
     ph = make_phantom(kind, seed=args.seed, **options)
     paths = write_phantom(ph, args.out, overwrite=args.overwrite)
     record = {"kind": kind, "outputs": [str(p) for p in paths], "init": ph.init}
