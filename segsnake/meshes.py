@@ -44,21 +44,21 @@ def world_mesh(model, volume):
     float32 world-mm points of :func:`world_triangles` (same parameters)."""
     mesh = model.to_mesh()
     mesh.points = _world_points(mesh.points, volume)
-    if _mirrors(volume):
-        faces = np.asarray(mesh.faces).reshape(-1, 4)  # (3, a, b, c) a triangle
-        mesh.faces = np.column_stack([faces[:, 0], _world_order(faces[:, 1:], volume)]).ravel()
+    faces = np.asarray(mesh.faces).reshape(-1, 4)  # (3, a, b, c) a triangle
+    tris = faces[:, 1:]
+    reordered = _world_order(tris, volume)
+    if reordered is not tris:
+        mesh.faces = np.column_stack([faces[:, 0], reordered]).ravel()
     return mesh
 
 
-def _mirrors(volume) -> bool:
-    """Does the volume's affine mirror (a negative determinant: a LAS grid, for one)?"""
-    return bool(np.linalg.det(np.asarray(volume.affine, dtype=np.float64)[:3, :3]) < 0)
-
-
 def _world_order(tris: np.ndarray, volume) -> np.ndarray:
-    """Triangles outward in world mm: where the affine mirrors, the index space's outward
-    triangles turn inward and are reversed."""
-    return tris[:, ::-1].copy() if _mirrors(volume) else tris
+    """Triangles outward in world mm: where the affine mirrors (a negative determinant: a LAS
+    grid, for one), the index space's outward triangles turn inward and are reversed (a new
+    array); otherwise ``tris`` itself."""
+    if np.linalg.det(np.asarray(volume.affine, dtype=np.float64)[:3, :3]) < 0:
+        return tris[:, ::-1].copy()
+    return tris
 
 
 def _world_points(points: np.ndarray, volume) -> np.ndarray:
