@@ -110,6 +110,9 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
         if inner < MIN_SAMPLES:  # (no spread yet: slices far thicker than the pixels)
             continue
         model = IntensityModel.from_samples(values[:inner], image_range, min_sigma_fraction)
+        if base is None and _bounded_within(values[:inner], dist[:inner], core_fraction * r,
+                                            image_range, min_sigma_fraction, shell_spreads):
+            return r
         base = model.sigma if base is None else base
         if model.sigma > spread_growth * base:
             return last
@@ -118,3 +121,19 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
             return r
         last = r
     return radii[-1]
+
+
+def _bounded_within(values: NDArray, dist: NDArray, core_mm: float, image_range: float,
+                    min_sigma_fraction: float, shell_spreads: float) -> bool:
+    """Whether a boundary already lies within the smallest ball: the median of its voxels beyond
+    its core (within ``core_mm``, at least the nearest :data:`MIN_SAMPLES`: what the intensity
+    model reads) lies more than ``shell_spreads`` of the core's spreads from the core's. An
+    object about as small as the smallest ball (a nodule of a few voxels' radius) then fills its
+    core but not the rest, and the ball's own spread, its background mixed in, would hide every
+    boundary beyond it. (``values`` nearest first, ``dist`` their distances.)"""
+    k = max(int(np.searchsorted(dist, core_mm, side="right")), MIN_SAMPLES)
+    if k >= values.size:
+        return False
+    core = IntensityModel.from_samples(values[:k], image_range, min_sigma_fraction)
+    return abs(float(np.median(values[k:])) - core.mu) > shell_spreads * core.sigma
+
