@@ -108,6 +108,11 @@ def perturbed_gradients(eps: float, seed: int = 0) -> Iterator[None]:
         energy.FluxTerm.value_and_grad = exact
 
 
+#: The quality scores whose thresholds give ``segment``'s failure warnings, each reported as
+#: the suite's range (how far from its threshold the phantoms lie).
+QUALITY = ("class_separation", "click_depth", "step_beyond")
+
+
 def run_case(case: dict) -> dict:
     """Segment one phantom; its score (Dice or Jaccard), its Dice, iterations, seconds and the
     warnings ``segment`` would print about it (:func:`segsnake.runner.result_warnings`), or the
@@ -129,9 +134,11 @@ def run_case(case: dict) -> dict:
                 "seconds": time.perf_counter() - t0}
     truth = ph.truth.astype(bool)
     score = (dice if case["score"] == "dice" else jaccard)(res.mask, truth)
+    quality = {k: res.settings[k] for k in QUALITY if res.settings.get(k) is not None}
     return {"score": float(score), "dice": float(dice(res.mask, truth)),
             "iterations": int(res.iterations),
-            "seconds": time.perf_counter() - t0, "warnings": result_warnings(res)}
+            "seconds": time.perf_counter() - t0, "warnings": result_warnings(res),
+            "quality": quality}
 
 
 def _dice(run: dict, score_name: str) -> float:
@@ -180,6 +187,11 @@ def markdown(info: dict) -> str:
         warned = [r for r in rows if r["exact"].get("warnings")]
         summary = (f"{suite}: {ok} of {len(rows)} reach their goal; {len(warned)} warned about"
                    + (f" ({', '.join(r['name'] for r in warned)})" if warned else ""))
+        for key in QUALITY:
+            values = [r["exact"]["quality"][key] for r in rows
+                      if key in r["exact"].get("quality", {})]
+            if values:
+                summary += f"; {key} {min(values):.2f}-{max(values):.2f}"
         if eps:
             ok_p = sum(r["perturbed"]["score"] >= r["goal"] for r in rows)
             worst = max(abs(r["perturbed"]["score"] - r["exact"]["score"]) for r in rows)

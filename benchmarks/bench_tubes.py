@@ -148,7 +148,8 @@ def run_segment(cmd: list[str], out: Path) -> dict:
     except json.JSONDecodeError:
         summary = {}
     rec: dict[str, Any] = {"seconds": secs, "exit": res.returncode, "out": str(out),
-                           "dice": summary.get("dice"), "jaccard": summary.get("jaccard")}
+                           "dice": summary.get("dice"), "jaccard": summary.get("jaccard"),
+                           "warnings": summary.get("warnings", [])}
     if res.returncode != 0:
         msg = summary.get("message") or (res.stderr.strip().splitlines() or ["?"])[-1]
         rec["error"] = msg
@@ -357,6 +358,11 @@ def markdown(info: dict) -> str:
                 counts.append(f"{group} {ok} of {len(runs)}")
         if counts:
             lines.append(f"Dice >= {GOAL:g} from the {name}: " + ", ".join(counts) + ".")
+    runs = [(row["id"], key, run) for row in info["rows"] for key, run in row["runs"].items()
+            if run is not None]
+    warned = [f"{name} ({key})" for name, key, run in runs if run.get("warnings")]
+    lines.append(f"The failure warning: on {len(warned)} of {len(runs)} runs"
+                 + (f" ({', '.join(warned)})" if warned else "") + ".")
     lines.append("Diameter errors: equivalent diameter from the end-point run / the centreline run "
                  f"(goal {100 * PROFILE_GOAL:g} %), over every row on the true centreline and over "
                  "the rows more than one true diameter from its ends; times likewise.")

@@ -39,7 +39,7 @@ from segsnake.errors import SegmentationError
 from segsnake.parallel import gaussian_filter
 
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
-           "boundary_fraction", "blend", "two_class_blend",
+           "boundary_fraction", "step_beyond", "weighted_median", "blend", "two_class_blend",
            "local_outside_mean", "two_class_density", "edge_density", "step_contrast",
            "class_separation", "click_depth", "coarse_factors", "JUDGING_FIELDS",
            "PASS_FIELDS"]
@@ -186,6 +186,16 @@ class RegionParams:
     #: the thalamus results, which ran down the brainstem, at 0.08-0.44, the cerebellum's at
     #: 0.12-0.64. Half way is a round number inside that gap, not fitted to it.
     min_click_depth: float = 0.5
+    #: The failure warning for a result that stopped inside its object, short of its boundary
+    #: (:func:`step_beyond`): on half its area or more, a step of the object's polarity at
+    #: least this many times the one the surface sits on lies within ``step_reach_mm`` beyond it.
+    #: A surface on its boundary sees beyond it at most half its own step (its flank) and its
+    #: surroundings' texture; one left on a ramp inside a brighter core sees the rim's step
+    #: several times its own. (Measured: docs/benchmarks.md, session 32.)
+    max_step_beyond: float = 2.0
+    #: ... looked for this far beyond the surface (mm): the distance by which a surface that
+    #: stopped inside its object may have stopped short, within the passes' band.
+    step_reach_mm: float = 6.0
     #: Smallest spread of the intensity model, as a fraction of the image's range: intensities
     #: closer than this are one tissue (a noise-free image has no spread at all).
     min_sigma_fraction: float = 0.01
@@ -234,7 +244,8 @@ def coarse_factors(radius_mm: float, spacing: Sequence[float], growth_mm: float,
 #: (:func:`segsnake.pipeline.restart_options`) does not depend on them, so a result saved before
 #: one of them was added or changed still restarts unchanged.
 JUDGING_FIELDS = frozenset({"min_separation", "step_depth_mm", "step_spreads",
-                            "min_class_separation", "min_click_depth"})
+                            "min_class_separation", "min_click_depth", "max_step_beyond",
+                            "step_reach_mm"})
 
 #: The :class:`RegionParams` fields that only shape a sphere's growth passes (stage 1), which a
 #: run from a saved surface never runs: a restart record does not depend on them either, so a
@@ -377,11 +388,11 @@ def click_depth(inside: NDArray[np.bool_], spacing: Sequence[float],
     return float(depth[tuple(idx)]) / deepest
 
 
-def boundary_fraction(image_s: NDArray, model, spacing: Sequence[float], polarity: int,
-                      min_step: float, depth_mm: float) -> float:
-    """The fraction of the surface's area that lies on a step: where ``polarity * (I_s(x - d n) -
-    I_s(x + d n)) > min_step`` (``n`` the outward unit normal, ``d = depth_mm``). A surface that
-    leaked into tissue like the object's, or stopped inside it, has little of its area there."""
+def _steps_along_normals(image_s: NDArray, model, spacing: Sequence[float], polarity: int,
+                         depth_mm: float, offsets_mm: NDArray) -> tuple[NDArray, NDArray]:
+    """The step ``polarity * (I_s(y - d n) - I_s(y + d n))`` at ``y = x + t n`` for each offset
+    ``t`` (rows) and each of the surface's area samples ``x`` (columns; ``n`` the outward unit
+    normal, ``d = depth_mm``; the image's edge value beyond it), and the samples' area weights."""
     from scipy import ndimage
 
     pts, unit, area = model.area_samples(4)
@@ -390,8 +401,49 @@ def boundary_fraction(image_s: NDArray, model, spacing: Sequence[float], polarit
     def sample(p: NDArray) -> NDArray:
         return ndimage.map_coordinates(image_s, (p / sp).T, order=1, mode="nearest")
 
-    step = polarity * (sample(pts - depth_mm * unit) - sample(pts + depth_mm * unit))
-    return float(np.sum(area[step > min_step]) / max(np.sum(area), 1e-300))
+    steps = np.stack([polarity * (sample(pts + (t - depth_mm) * unit)
+                                  - sample(pts + (t + depth_mm) * unit)) for t in offsets_mm])
+    return steps, area
+
+
+def boundary_fraction(image_s: NDArray, model, spacing: Sequence[float], polarity: int,
+                      min_step: float, depth_mm: float) -> float:
+    """The fraction of the surface's area that lies on a step: where ``polarity * (I_s(x - d n) -
+    I_s(x + d n)) > min_step`` (``n`` the outward unit normal, ``d = depth_mm``). A surface that
+    leaked into tissue like the object's, or stopped inside it, has little of its area there."""
+    step, area = _steps_along_normals(image_s, model, spacing, polarity, depth_mm,
+                                      np.zeros(1))
+    return float(np.sum(area[step[0] > min_step]) / max(np.sum(area), 1e-300))
+
+
+def step_beyond(image_s: NDArray, model, spacing: Sequence[float], polarity: int,
+                depth_mm: float, reach_mm: float, min_step: float) -> float:
+    """How much stronger a step of the object's polarity lies just beyond the surface than the
+    one it sits on: at each area sample ``x`` the largest step (as :func:`boundary_fraction`
+    measures it, across ``2 depth_mm``) centred between ``depth_mm`` and ``reach_mm`` beyond
+    ``x`` along the outward normal, over the step at ``x`` itself (at least ``min_step``, the
+    weakest step that is one); the area-weighted median of that ratio over the surface.
+
+    About 1 or less on a surface that sits on its object's boundary (the steps beyond it are
+    its surroundings' texture, or its own step's flank, seen at most half); large where the
+    surface stopped inside its object short of a boundary, on a ramp or an inner step (an
+    object brighter in its middle than at its rim). The offsets are spaced half the finest
+    voxel apart, so no step between them is missed."""
+    sp = np.asarray(spacing, dtype=np.float64)
+    offsets = np.arange(depth_mm, reach_mm + 1e-9, 0.5 * float(sp.min()))
+    if offsets.size == 0:
+        return 0.0
+    steps, area = _steps_along_normals(image_s, model, sp, polarity, depth_mm,
+                                       np.concatenate([[0.0], offsets]))
+    ratio = steps[1:].max(axis=0) / np.maximum(steps[0], min_step)
+    return weighted_median(ratio, area)
+
+
+def weighted_median(values: NDArray, weights: NDArray) -> float:
+    """The value below which half the total weight lies (the lower one at an exact tie)."""
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
 
 
 def local_outside_mean(image_s: NDArray, shell: NDArray, spacing: Sequence[float],

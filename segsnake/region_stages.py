@@ -366,6 +366,8 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
+    beyond = rg.step_beyond(image_s, model, sp, polarity, p.step_depth_mm, p.step_reach_mm,
+                            p.step_spreads * intensity.sigma)
     if final is not None:
         record = {**options, "intensity": intensity.to_dict(),
                   "window": [list(final["window"].lo), list(final["window"].hi)],
@@ -378,7 +380,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 "contrast": contrast, "separation": contrast / intensity.sigma,
                 # (null for two constant classes: JSON has no infinity)
                 "class_separation": separated if math.isfinite(separated) else None,
-                "boundary_fraction": on_step, "click_depth": depth,
+                "boundary_fraction": on_step, "step_beyond": beyond, "click_depth": depth,
                 "window": [list(window.lo), list(window.hi)],
                 "regularization": REGULARIZATION, "region_params": dataclasses.asdict(p),
                 "restart": record}

@@ -362,7 +362,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         "warnings": list(volume.warnings) + truth_warnings + result_warnings(result),
     }
     quality = {k: result.settings[k] for k in ("separation", "class_separation",
-                                                "boundary_fraction", "click_depth")
+                                                "boundary_fraction", "step_beyond",
+                                                "click_depth")
                if k in result.settings}
     if quality:
         summary["quality"] = quality
@@ -521,7 +522,9 @@ def result_warnings(result) -> list[str]:
     neither surface is the result), and (the region energy) an inside and outside that overlap
     in intensity (:func:`segsnake.region.class_separation` below the region parameters'
     ``min_class_separation``), and a result that grew away from its click
-    (:func:`segsnake.region.click_depth` below ``min_click_depth``)."""
+    (:func:`segsnake.region.click_depth` below ``min_click_depth``), and one that stopped short
+    of a stronger step just beyond it (:func:`segsnake.region.step_beyond` above
+    ``max_step_beyond``)."""
     out = [f"stage {i + 1} ({h['stage']}) ended with a quadrature that does not agree with twice "
            f"its order (iteration or round cap reached): the surface may be less accurate"
            for i, h in enumerate(result.history)
@@ -542,6 +545,15 @@ def result_warnings(result) -> list[str]:
         least = result.settings.get("region_params", {}).get(param)
         if value is not None and least is not None and value < least:
             out.append(text.format(value=value, least=least))
+    value = result.settings.get("step_beyond")
+    most = result.settings.get("region_params", {}).get("max_step_beyond")
+    if value is not None and most is not None and value > most:
+        reach = result.settings["region_params"]["step_reach_mm"]
+        out.append(f"the result stopped inside a stronger boundary: on half its surface a step "
+                   f"{value:.1f} times the one it sits on lies within {reach:g} mm beyond it "
+                   f"(above {most:g}); the object may reach farther (an inside brighter in its "
+                   f"middle than at its rim); check it, or give --radii that reach its rim, or "
+                   f"try --energy edge")
     return out
 
 

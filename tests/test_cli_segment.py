@@ -706,6 +706,13 @@ def test_a_result_that_overlaps_its_outside_is_warned_about():
     assert result_warnings(away) == []
     away.settings["click_depth"] = None  # a tube, or a start from a saved surface
     assert result_warnings(away) == []
+    # a result that stopped short of a stronger step beyond it (segsnake.region.step_beyond)
+    away.settings.update(step_beyond=4.8, region_params={"max_step_beyond": 2.0,
+                                                         "step_reach_mm": 6.0})
+    (text,) = result_warnings(away)
+    assert "a step 4.8 times the one it sits on lies within 6 mm beyond it (above 2)" in text
+    away.settings["step_beyond"] = 1.9
+    assert result_warnings(away) == []
 
 
 def test_a_prior_gives_the_snake_its_size(ball, tmp_path):

@@ -291,6 +291,36 @@ def test_boundary_fraction_is_the_share_of_the_surface_on_a_step():
     assert boundary_fraction(image, inside, (1.0, 1.0, 1.0), 1, 10.0, 2.0) == 0.0
 
 
+def test_step_beyond_sees_a_stronger_step_just_beyond_the_surface():
+    from segsnake.region import step_beyond, weighted_median
+    from segsnake.surfaces import SphereModel
+
+    n, r = 48, 12.0
+    x = np.indices((n, n, n)).astype(np.float32) - 24.0
+    rho = np.sqrt((x ** 2).sum(0))
+    step = np.where(rho < r, 100.0, 20.0).astype(np.float32)
+
+    def sphere(radius):
+        return SphereModel.unit(9, 9).transformed(radius * np.eye(3), [24.0, 24.0, 24.0])
+
+    args = ((1.0, 1.0, 1.0), 1, 2.0, 6.0, 10.0)
+    # on the step: beyond it at most its own step's flank (half of it, read across the step)
+    assert step_beyond(step, sphere(r), *args) <= 0.5 + 1e-6
+    # 4 mm inside a flat inside: nothing at the surface (the floor, 10), the 80 step beyond
+    assert step_beyond(step, sphere(r - 4.0), *args) == pytest.approx(8.0)
+    # out of reach (9 mm inside: the outer sample reaches 6 + 2 mm beyond): nothing seen
+    assert step_beyond(step, sphere(r - 9.0), *args) == pytest.approx(0.0)
+    # a ramp inside (300 at the centre to 200 at the rim, then 50), the surface 4 mm inside the
+    # rim: across 4 mm the ramp falls 33.3 there, and 183.3 across the rim (233.3 -> 50)
+    ramp = np.where(rho < r, 300.0 - 100.0 * rho / r, 50.0).astype(np.float32)
+    assert step_beyond(ramp, sphere(r - 4.0), *args) == pytest.approx(183.3 / 33.3, rel=0.05)
+    assert step_beyond(ramp, sphere(r), *args) < 1.0
+    assert step_beyond(step, sphere(r - 4.0), (1.0, 1.0, 1.0), -1, 2.0, 6.0, 10.0) <= 0.0
+    # the median weighs by area
+    assert weighted_median(np.array([3.0, 1.0, 2.0]), np.array([1.0, 1.0, 5.0])) == 2.0
+    assert weighted_median(np.array([3.0, 1.0, 2.0]), np.array([1.0, 5.0, 1.0])) == 1.0
+
+
 def test_blend_trusts_the_two_classes_only_where_the_outside_differs():
     m = IntensityModel(mu=100.0, sigma=10.0, range=400.0)
     two = np.full((1, 1, 4), -0.5, np.float32)
@@ -463,6 +493,29 @@ def test_a_result_that_left_its_click_is_warned_about():
         warned = [w for w in result_warnings(res) if "grew away from its start's centre" in w]
         assert len(warned) == (centre == small)
     assert depths[0] < 0.25 and depths[1] > 0.9
+
+
+def test_a_result_that_stopped_short_of_its_rim_is_warned_about():
+    # An ellipsoid brighter in its middle than at its rim (300 -> 200, then 50 outside; noise
+    # 10): from a click alone the click's class is the core's, and the surface stops on the
+    # ramp about half way out (measured: Dice 0.21, step_beyond 5.2); the same ellipsoid with
+    # a flat inside (200) is found and not warned about (0.998, step_beyond 0.49).
+    from segsnake.runner import result_warnings
+
+    x = np.indices((48, 48, 48)).astype(np.float32) - 23.5
+    rho = np.sqrt((x[0] / 12) ** 2 + (x[1] / 10) ** 2 + (x[2] / 8) ** 2)
+    truth = rho <= 1
+    noise = np.random.default_rng(0).normal(0, 10, truth.shape).astype(np.float32)
+    config = SegmentConfig.from_mapping({"center": [23.5] * 3})
+    beyond = []
+    for inside in (300 - 100 * rho, np.full_like(rho, 200)):
+        res = segment_volume(np.where(truth, inside, 50).astype(np.float32) + noise,
+                             (1.0, 1.0, 1.0), config)
+        warned = [w for w in result_warnings(res) if "stopped inside a stronger boundary" in w]
+        beyond.append((dice(res.mask, truth), res.settings["step_beyond"], len(warned)))
+    (short, short_beyond, short_warned), (flat, flat_beyond, flat_warned) = beyond
+    assert short < 0.5 and short_beyond > 3 and short_warned == 1
+    assert flat > 0.95 and flat_beyond < 1 and flat_warned == 0
 
 
 @pytest.mark.parametrize("voxel_mm", [3.0, 10.0])
