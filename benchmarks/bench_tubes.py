@@ -361,7 +361,8 @@ def markdown(info: dict) -> str:
     runs = [(row["id"], key, run) for row in info["rows"] for key, run in row["runs"].items()
             if run is not None]
     warned = [f"{name} ({key})" for name, key, run in runs if run.get("warnings")]
-    lines.append(f"The failure warning: on {len(warned)} of {len(runs)} runs"
+    lines.append(f"Warnings (segment's stderr: the failure warnings, the quadrature's, the "
+                 f"image's): on {len(warned)} of {len(runs)} runs"
                  + (f" ({', '.join(warned)})" if warned else "") + ".")
     lines.append("Diameter errors: equivalent diameter from the end-point run / the centreline run "
                  f"(goal {100 * PROFILE_GOAL:g} %), over every row on the true centreline and over "

@@ -14,7 +14,9 @@ two tests ends the growth:
   shell.
 
 A mixed ball is one step too far (the radius before it is returned); a bounded one is the last
-inside. Both tests are medians, so they see a boundary that curves around the click (a
+inside. The smallest ball is first tested against its own core (:func:`_bounded_within`): an
+object about as small as it (a nodule of a few voxels' radius) fills the core but not the rest,
+and the smallest ball is then the one returned. Both tests are medians, so they see a boundary that curves around the click (a
 structure about it) at once, but one off to one side (a flat face) only late: it fills less than
 half of any shell, and the spread grows only once a good part of the ball lies beyond it. An
 off-centre click's sphere may then reach well past its nearest boundary; the region stages pull
@@ -126,11 +128,12 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
 def _bounded_within(values: NDArray, dist: NDArray, core_mm: float, image_range: float,
                     min_sigma_fraction: float, shell_spreads: float) -> bool:
     """Whether a boundary already lies within the smallest ball: the median of its voxels beyond
-    its core (within ``core_mm``, at least the nearest :data:`MIN_SAMPLES`: what the intensity
-    model reads) lies more than ``shell_spreads`` of the core's spreads from the core's. An
-    object about as small as the smallest ball (a nodule of a few voxels' radius) then fills its
-    core but not the rest, and the ball's own spread, its background mixed in, would hide every
-    boundary beyond it. (``values`` nearest first, ``dist`` their distances.)"""
+    its core (the voxels within ``core_mm``, its radius's ``core_fraction``, or the nearest
+    :data:`MIN_SAMPLES` if that holds fewer: the fewest a spread is read from) lies more than
+    ``shell_spreads`` of the core's spreads from the core's. An object about as small as the
+    smallest ball (a nodule of a few voxels' radius) then fills its core but not the rest, and
+    the ball's own spread, its background mixed in, would hide every boundary beyond it.
+    (``values`` nearest first, ``dist`` their distances.)"""
     k = max(int(np.searchsorted(dist, core_mm, side="right")), MIN_SAMPLES)
     if k >= values.size:
         return False

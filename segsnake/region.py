@@ -188,13 +188,15 @@ class RegionParams:
     min_click_depth: float = 0.5
     #: The failure warning for a result that stopped inside its object, short of its boundary
     #: (:func:`step_beyond`): on half its area or more, a step of the object's polarity at
-    #: least this many times the one the surface sits on lies within ``step_reach_mm`` beyond it.
-    #: A surface on its boundary sees beyond it at most half its own step (its flank) and its
-    #: surroundings' texture; one left on a ramp inside a brighter core sees the rim's step
-    #: several times its own. (Measured: docs/benchmarks.md, session 32.)
+    #: least this many times the one the surface sits on is centred within ``step_reach_mm``
+    #: beyond it. A surface on its boundary sees beyond it its own step's flank (half of a sharp
+    #: step, up to about all of a blurred one or a small ball's) and its surroundings' texture;
+    #: one left on a ramp inside a brighter core sees the rim's step several times its own.
+    #: (Measured: docs/benchmarks.md, session 32.)
     max_step_beyond: float = 2.0
-    #: ... looked for this far beyond the surface (mm): the distance by which a surface that
-    #: stopped inside its object may have stopped short, within the passes' band.
+    #: ... centred up to this far beyond the surface (mm; read across ``step_depth_mm`` more):
+    #: the distance by which a surface that stopped inside its object may have stopped short,
+    #: within the passes' band.
     step_reach_mm: float = 6.0
     #: Smallest spread of the intensity model, as a fraction of the image's range: intensities
     #: closer than this are one tissue (a noise-free image has no spread at all).
@@ -425,7 +427,8 @@ def step_beyond(image_s: NDArray, model, spacing: Sequence[float], polarity: int
     weakest step that is one); the area-weighted median of that ratio over the surface.
 
     About 1 or less on a surface that sits on its object's boundary (the steps beyond it are
-    its surroundings' texture, or its own step's flank, seen at most half); large where the
+    its surroundings' texture, or its own step's flank: half of a sharp step, more of a blurred
+    one or a small ball's, 0.5-1.1 measured); large where the
     surface stopped inside its object short of a boundary, on a ramp or an inner step (an
     object brighter in its middle than at its rim). The offsets are spaced half the finest
     voxel apart, so no step between them is missed."""

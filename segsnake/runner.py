@@ -549,8 +549,8 @@ def result_warnings(result) -> list[str]:
     most = result.settings.get("region_params", {}).get("max_step_beyond")
     if value is not None and most is not None and value > most:
         reach = result.settings["region_params"]["step_reach_mm"]
-        out.append(f"the result stopped inside a stronger boundary: on half its surface a step "
-                   f"{value:.1f} times the one it sits on lies within {reach:g} mm beyond it "
+        out.append(f"the result stopped short of a stronger boundary: on half its surface a "
+                   f"step {value:.1f} times the one it sits on lies within {reach:g} mm beyond it "
                    f"(above {most:g}); the object may reach farther (an inside brighter in its "
                    f"middle than at its rim); check it, or give --radii that reach its rim, or "
                    f"try --energy edge")

@@ -319,6 +319,8 @@ def test_step_beyond_sees_a_stronger_step_just_beyond_the_surface():
     # the median weighs by area
     assert weighted_median(np.array([3.0, 1.0, 2.0]), np.array([1.0, 1.0, 5.0])) == 2.0
     assert weighted_median(np.array([3.0, 1.0, 2.0]), np.array([1.0, 5.0, 1.0])) == 1.0
+    assert weighted_median(np.array([3.0, 1.0, 2.0]), np.array([5.0, 1.0, 1.0])) == 3.0
+    assert weighted_median(np.array([2.0, 1.0]), np.array([1.0, 1.0])) == 1.0  # a tie: lower
 
 
 def test_blend_trusts_the_two_classes_only_where_the_outside_differs():
@@ -511,7 +513,7 @@ def test_a_result_that_stopped_short_of_its_rim_is_warned_about():
     for inside in (300 - 100 * rho, np.full_like(rho, 200)):
         res = segment_volume(np.where(truth, inside, 50).astype(np.float32) + noise,
                              (1.0, 1.0, 1.0), config)
-        warned = [w for w in result_warnings(res) if "stopped inside a stronger boundary" in w]
+        warned = [w for w in result_warnings(res) if "stopped short of a stronger boundary" in w]
         beyond.append((dice(res.mask, truth), res.settings["step_beyond"], len(warned)))
     (short, short_beyond, short_warned), (flat, flat_beyond, flat_warned) = beyond
     assert short < 0.5 and short_beyond > 3 and short_warned == 1

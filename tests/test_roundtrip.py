@@ -281,8 +281,8 @@ def test_a_record_does_not_depend_on_the_thresholds_that_only_judge_a_result(bal
     _, image, seg = ball
     saved = json.loads((seg / "snake.json").read_text())
     params = saved["settings"]["restart"]["region_params"]
-    assert not {"min_separation", "min_class_separation", "min_click_depth", "growth_mm",
-                "coarse_fraction"} & set(params)
+    assert not {"min_separation", "min_class_separation", "min_click_depth", "max_step_beyond",
+                "step_reach_mm", "growth_mm", "coarse_fraction"} & set(params)
     for name, change, used in (
             ("older", {"min_separation": 1.5, "step_depth_mm": 3.0, "step_spreads": 2.0,
                        "min_class_separation": 0.5, "growth_mm": 6.0, "growth_stop": 0.01},
