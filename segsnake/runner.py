@@ -37,8 +37,8 @@ from segsnake.qc import click_index, write_qc_picture
 from segsnake.saved_snake import image_from_world, load_snake, load_snake_and_record, \
     read_model, world_from_image
 
-__all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes", "segment_file",
-           "render_file", "result_warnings"]
+__all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes",
+           "check_grid_memory", "segment_file", "render_file", "result_warnings"]
 
 OUTPUT_NAMES = ("mask.nii.gz", "surface.vtp", "snake.json", "qc.png")
 # A cylinder's tube profile along its centerline (segsnake.profile), written with the others.
@@ -191,16 +191,9 @@ def check_sizes(config, volume) -> None:
                               f"thickness of the boundary you segment)")
     if config.m1 is not None or config.m2 is not None:
         # (without them coarse to fine stays at the schedule's grids, a few MB)
-        from segsnake.io import beyond_memory, fmt_bytes
-
         m1, m2 = config.m1 or 9, config.m2 or 9
-        need = METRIC_BYTES_PER_POINT2 * (m1 * (m2 + 3)) ** 2
-        beyond = beyond_memory(need)
-        if beyond is not None:
-            raise ConfigError(f"{volume.path}: --m1 {m1} --m2 {m2} needs about {fmt_bytes(need)} "
-                              f"of memory for the snake's {m1 * (m2 + 3)} control points, "
-                              f"{beyond}; give a smaller M, or none (coarse to fine then chooses "
-                              f"it)")
+        check_grid_memory(m1, m2, f"{volume.path}: --m1 {m1} --m2 {m2}",
+                          "give a smaller M, or none (coarse to fine then chooses it)")
     # radii/radius are voxels, or mm with world: compare with the extent in the same unit.
     extent = extent_mm if config.world else float(np.max(volume.shape))
     unit = "mm" if config.world else "voxels"
@@ -211,6 +204,19 @@ def check_sizes(config, volume) -> None:
         if value > extent:
             raise ConfigError(f"{volume.path}: {flag} {value:g} {unit} is larger than the image "
                               f"(longest extent {extent:g} {unit}); give a size inside the image")
+
+
+def check_grid_memory(m1: int, m2: int, what: str, advice: str) -> None:
+    """Refuse (exit 2) a control grid whose optimizer would need more memory than the process
+    may use (:data:`METRIC_BYTES_PER_POINT2` per squared control point); ``what`` starts the
+    message (the file and what asked for the grid), ``advice`` ends it."""
+    from segsnake.io import beyond_memory, fmt_bytes
+
+    need = METRIC_BYTES_PER_POINT2 * (m1 * (m2 + 3)) ** 2
+    beyond = beyond_memory(need)
+    if beyond is not None:
+        raise ConfigError(f"{what} needs about {fmt_bytes(need)} of memory for the snake's "
+                          f"{m1 * (m2 + 3)} control points, {beyond}; {advice}")
 
 
 def _with_image_name(exc: Exception, image_path: str) -> None:
@@ -417,6 +423,9 @@ def _start_from(saved, config, volume):
 
     model = image_from_world(saved, volume.affine, volume.spacing)
     m1, m2 = config.m1 or model.m1, config.m2 or model.m2
+    if config.m1 is None or config.m2 is None:  # (both given: check_sizes checked them)
+        check_grid_memory(m1, m2, f"{config.init}: the saved snake's {m1} x {m2} control grid",
+                          "give --m1 and --m2 to resample it to a smaller grid")
     if (m1, m2) != (model.m1, model.m2):
         model = resample(model, m1, m2)
     sp = np.asarray(volume.spacing)

@@ -456,6 +456,27 @@ def test_a_control_grid_too_large_for_memory_is_refused_up_front():
            in proc.stderr, proc.stderr
 
 
+def test_a_saved_snake_too_large_for_memory_is_refused_up_front():
+    """A saved snake given with --init brings its own grid: M1 = M2 = 60 (545 MB) is refused
+    under ulimit -v with 300 MB left, as --m1 60 --m2 60 is; resampled to 20 x 20 it is not."""
+    proc = _under_address_space(300, (
+        "import types\n"
+        "import numpy as np\n"
+        "from segsnake.config import SegmentConfig\n"
+        "from segsnake.runner import _start_from\n"
+        "from segsnake.surfaces import SphereModel\n"), (
+        "image = types.SimpleNamespace(path='a.nii', shape=(64, 64, 64), spacing=(1.0, 1.0, 1.0),\n"
+        "                              affine=np.eye(4))\n"
+        "saved = SphereModel.unit(60, 60).transformed(10 * np.eye(3), [32.0, 32.0, 32.0])\n"
+        "model, _ = _start_from(saved, SegmentConfig(init='s.json', m1=20, m2=20), image)\n"
+        "assert (model.m1, model.m2) == (20, 20)\n"
+        "_start_from(saved, SegmentConfig(init='s.json'), image)\n"))
+    assert proc.returncode == 1
+    assert "ConfigError: s.json: the saved snake's 60 x 60 control grid needs about 545.1 MB of " \
+           "memory for the snake's 3780 control points, more than the address space left under " \
+           "ulimit -v (" in proc.stderr, proc.stderr
+
+
 # -- fault injection -------------------------------------------------------------------------------
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
