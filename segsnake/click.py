@@ -16,14 +16,15 @@ two tests ends the growth:
 A mixed ball is one step too far (the radius before it is returned); a bounded one is the last
 inside. The smallest ball is first tested against its own core (:func:`_bounded_within`): an
 object about as small as it (a nodule of a few voxels' radius) fills the core but not the rest,
-and the smallest ball is then the one returned. Both tests are medians, so they see a boundary that curves around the click (a
-structure about it) at once, but one off to one side (a flat face) only late: it fills less than
-half of any shell, and the spread grows only once a good part of the ball lies beyond it. An
-off-centre click's sphere may then reach well past its nearest boundary; the region stages pull
-it back (the review's plane and cube phantoms, docs/benchmarks.md session 16). The smallest ball
-is the smallest whose core (``core_fraction`` of the radius, where the intensity model is read)
-holds about :data:`segsnake.region.MIN_SAMPLES` voxels; a ball with fewer than that (very thick
-slices) is passed over. Without a click the sphere comes from the whole image instead
+and the smallest ball is then the one returned. Both tests are medians, so they see a boundary
+that curves around the click (a structure about it) at once, but one off to one side (a flat
+face) only late: it fills less than half of any shell, and the spread grows only once a good
+part of the ball lies beyond it. An off-centre click's sphere may then reach well past its
+nearest boundary; the region stages pull it back (the review's plane and cube phantoms,
+docs/benchmarks.md session 16). The smallest ball is the smallest whose core (``core_fraction``
+of the radius, where the intensity model is read) holds about
+:data:`segsnake.region.MIN_SAMPLES` voxels; a ball with fewer than that (very thick slices) is
+passed over. Without a click the sphere comes from the whole image instead
 (:func:`segsnake.pipeline.auto_init`).
 """
 
@@ -139,4 +140,3 @@ def _bounded_within(values: NDArray, dist: NDArray, core_mm: float, image_range:
         return False
     core = IntensityModel.from_samples(values[:k], image_range, min_sigma_fraction)
     return abs(float(np.median(values[k:])) - core.mu) > shell_spreads * core.sigma
-

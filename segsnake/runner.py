@@ -538,31 +538,28 @@ def result_warnings(result) -> list[str]:
            f"its order (iteration or round cap reached): the surface may be less accurate"
            for i, h in enumerate(result.history)
            if not h.get("quadrature_resolved", True) and not h.get("left") and h.get("kept", True)]
-    # (a quality score below its region parameter, and what that says of the result)
+    # (a quality score beyond its region parameter's bound, below a least or above a most, and
+    # what that says of the result; the text may name any region parameter)
     scores = {
-        ("class_separation", "min_class_separation"):
+        ("class_separation", "min_class_separation", -1):
             "the intensities inside the result and just outside it overlap (their medians differ "
-            "by {value:.2f} of their spread, below {least:g}): its boundary is weak or it leaked "
+            "by {value:.2f} of their spread, below {bound:g}): its boundary is weak or it leaked "
             "into its surroundings; check it (a shape prior may hold it)",
-        ("click_depth", "min_click_depth"):
+        ("click_depth", "min_click_depth", -1):
             "the result grew away from its start's centre (the click, or the centre estimated "
             "without one): that point lies at {value:.2f} of the result's greatest depth, below "
-            "{least:g}, near its surface; it may have run on into a neighbouring structure of "
-            "like intensity; check it"}
-    for (key, param), text in scores.items():
-        value = result.settings.get(key)
-        least = result.settings.get("region_params", {}).get(param)
-        if value is not None and least is not None and value < least:
-            out.append(text.format(value=value, least=least))
-    value = result.settings.get("step_beyond")
-    most = result.settings.get("region_params", {}).get("max_step_beyond")
-    if value is not None and most is not None and value > most:
-        reach = result.settings["region_params"]["step_reach_mm"]
-        out.append(f"the result stopped short of a stronger boundary: on half its surface a "
-                   f"step {value:.1f} times the one it sits on lies within {reach:g} mm beyond it "
-                   f"(above {most:g}); the object may reach farther (an inside brighter in its "
-                   f"middle than at its rim); check it, or give --radii that reach its rim, or "
-                   f"try --energy edge")
+            "{bound:g}, near its surface; it may have run on into a neighbouring structure of "
+            "like intensity; check it",
+        ("step_beyond", "max_step_beyond", 1):
+            "the result stopped short of a stronger boundary: on half its surface a step "
+            "{value:.1f} times the one it sits on lies within {step_reach_mm:g} mm beyond it "
+            "(above {bound:g}); the object may reach farther (an inside brighter in its middle "
+            "than at its rim); check it, or give --radii that reach its rim, or try --energy edge"}
+    params = result.settings.get("region_params", {})
+    for (key, param, side), text in scores.items():
+        value, bound = result.settings.get(key), params.get(param)
+        if value is not None and bound is not None and side * (value - bound) > 0:
+            out.append(text.format(**params, value=value, bound=bound))
     return out
 
 
