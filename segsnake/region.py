@@ -39,10 +39,10 @@ from segsnake.errors import SegmentationError
 from segsnake.parallel import gaussian_filter
 
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
-           "boundary_fraction", "step_beyond", "weighted_median", "blend", "two_class_blend",
-           "local_outside_mean", "two_class_density", "edge_density", "step_contrast",
-           "class_separation", "click_depth", "coarse_factors", "JUDGING_FIELDS",
-           "PASS_FIELDS"]
+           "boundary_fraction", "step_beyond", "step_widths", "along_normals", "FWHM_PER_WIDTH",
+           "weighted_median", "blend", "two_class_blend", "local_outside_mean",
+           "two_class_density", "edge_density", "step_contrast", "class_separation",
+           "click_depth", "coarse_factors", "JUDGING_FIELDS", "PASS_FIELDS"]
 
 @dataclass(frozen=True)
 class RegionParams:
@@ -63,6 +63,17 @@ class RegionParams:
     #: outside the current surface: beyond the smoothing width, where the step has ended ...
     shell_gap_mm: float = 1.0
     shell_mm: float = 4.0
+    #: ... and beyond the step's own blur, point by point: the gap at each point of the
+    #: surface is at least this many widths of the blur of the step there
+    #: (:func:`step_widths` at the round's starting surface, less the smoothing ``smooth_mm``
+    #: in quadrature), the shell keeping its thickness beyond it (0: the fixed gap alone). A
+    #: Gaussian step has made 97.7 % of its contrast two widths from its centre; read nearer,
+    #: the outside's mean is part of the step, which holds the surface inside it.
+    blur_gaps: float = 2.0
+    #: ... the blur read along the normal this far inside and outside the surface (mm): a
+    #: step's fall is read to where it has dropped to half its peak, 1.18 widths from its
+    #: centre, so blurs up to about 5 mm, with room for a surface that sits inside its step.
+    blur_reach_mm: float = 6.0
     #: ... and averaged along the surface over this width (mm): the outside changes along a
     #: structure (white matter on one side, CSF on the other), not within a few mm.
     outside_smooth_mm: float = 5.0
@@ -390,22 +401,111 @@ def click_depth(inside: NDArray[np.bool_], spacing: Sequence[float],
     return float(depth[tuple(idx)]) / deepest
 
 
+#: A Gaussian's full width at half maximum in standard deviations, ``2 sqrt(2 ln 2)``.
+FWHM_PER_WIDTH = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def _along_normals(image_s: NDArray, samples: tuple[NDArray, NDArray], spacing: Sequence[float],
+                   offsets_mm: NDArray) -> NDArray:
+    """``I_s(x + t n)`` for each offset ``t`` (rows) and each point ``x`` with its outward unit
+    normal ``n`` of ``samples`` (columns; linear interpolation, the image's edge value beyond
+    it)."""
+    from scipy import ndimage
+
+    pts, unit = samples
+    sp = np.asarray(spacing, dtype=np.float64)
+    return np.stack([ndimage.map_coordinates(image_s, ((pts + t * unit) / sp).T, order=1,
+                                             mode="nearest") for t in offsets_mm])
+
+
 def _steps_along_normals(image_s: NDArray, model, spacing: Sequence[float], polarity: int,
                          depth_mm: float, offsets_mm: NDArray) -> tuple[NDArray, NDArray]:
     """The step ``polarity * (I_s(y - d n) - I_s(y + d n))`` at ``y = x + t n`` for each offset
     ``t`` (rows) and each of the surface's area samples ``x`` (columns; ``n`` the outward unit
     normal, ``d = depth_mm``; the image's edge value beyond it), and the samples' area weights."""
-    from scipy import ndimage
-
     pts, unit, area = model.area_samples(4)
+    offsets = np.asarray(offsets_mm, dtype=np.float64)
+    values = _along_normals(image_s, (pts, unit), spacing,
+                            np.concatenate([offsets - depth_mm, offsets + depth_mm]))
+    return polarity * (values[:offsets.size] - values[offsets.size:]), area
+
+
+def step_widths(image_s: NDArray, samples: tuple[NDArray, NDArray], spacing: Sequence[float],
+                polarity: int, reach_mm: float, min_step: float) -> NDArray:
+    """The Gaussian width (mm) of the step at each point of ``samples`` (points and outward unit
+    normals), from its steepest fall's full width at half maximum: along the normal, between
+    ``reach_mm`` inside and ``reach_mm`` outside (read every quarter of the finest voxel), the
+    fall of ``image_s`` of the object's ``polarity`` per mm, its peak, and where on either side
+    of the peak it has dropped to half of it (interpolated; the profile's end where it has
+    not), over ``2 sqrt(2 ln 2)``. A step blurred by a Gaussian of ``s`` falls as that Gaussian:
+    its width is ``s`` (the smoothing of ``image_s`` and the voxels' own box included), read
+    near the step alone, whatever lies farther along the profile; less the spread the linear
+    interpolation between voxels adds to the reading. 0 where the profile's ends differ by less
+    than ``min_step`` in the object's polarity (no step of it there).
+    """
     sp = np.asarray(spacing, dtype=np.float64)
+    dt = 0.25 * float(sp.min())
+    n = max(1, int(math.ceil(reach_mm / dt)))
+    values = polarity * _along_normals(image_s, samples, sp, np.arange(-n, n + 1) * dt)
+    fall = -np.diff(values, axis=0) / dt  # (at the midpoints between samples)
+    peak = fall.argmax(axis=0)
+    cols = np.arange(fall.shape[1])
+    top = fall[peak, cols]
+    half = 0.5 * top
+    k = np.arange(fall.shape[0])[:, None]
+    below = fall < half
+    # the last sample below half before the peak, the first after it (none: the profile's end)
+    left = np.where(below & (k < peak), k, -1).max(axis=0)
+    right = np.where(below & (k > peak), k, fall.shape[0]).min(axis=0)
 
-    def sample(p: NDArray) -> NDArray:
-        return ndimage.map_coordinates(image_s, (p / sp).T, order=1, mode="nearest")
+    def crossing(j: NDArray, inner: NDArray) -> NDArray:
+        # where the fall crosses half between sample j (below) and its neighbour inner (above)
+        jj, ii = np.clip(j, 0, fall.shape[0] - 1), np.clip(inner, 0, fall.shape[0] - 1)
+        a, b = fall[jj, cols], fall[ii, cols]
+        frac = np.where(a < b, (half - a) / np.where(a < b, b - a, 1.0), 0.0)
+        return np.where((j >= 0) & (j < fall.shape[0]), j + frac * (inner - j), inner)
 
-    steps = np.stack([polarity * (sample(pts + (t - depth_mm) * unit)
-                                  - sample(pts + (t + depth_mm) * unit)) for t in offsets_mm])
-    return steps, area
+    fwhm = (crossing(right, right - 1) - crossing(left, left + 1)) * dt
+    width = fwhm / FWHM_PER_WIDTH
+    ok = (top > 0) & (values[0] - values[-1] >= min_step)
+    # (less the linear interpolation's own spread along the normal: a triangle one voxel wide,
+    # of variance voxel^2 / 6, which the reading adds and the image does not hold)
+    interpolation = np.sum((samples[1] * sp) ** 2, axis=1) / 6.0
+    return np.where(ok, np.sqrt(np.maximum(width ** 2 - interpolation, 0.0)), 0.0)
+
+
+def along_normals(values: NDArray, samples: tuple[NDArray, NDArray], shape: Sequence[int],
+                  spacing: Sequence[float], reach_mm: float, default: float,
+                  bin_mm: float) -> NDArray:
+    """A field on the grid (float32) that carries each point's value out along its normal: at
+    each voxel, the mean of the ``values`` of the points of ``samples`` (points in the grid's mm,
+    outward unit normals) whose normal passes within ``reach_mm`` outside through its bin (the
+    grid's voxels binned by the integer factor along each axis that keeps a bin within
+    ``bin_mm``; the normal read every half of the finest voxel), shared with the neighbouring
+    bins by a normalized Gaussian of one bin, so that normals that diverge leave no gaps;
+    ``default`` where none passes near."""
+    pts, unit = samples
+    sp = np.asarray(spacing, dtype=np.float64)
+    shape = tuple(int(n) for n in shape)
+    factor = np.maximum(1, np.floor(bin_mm / sp + 1e-9)).astype(np.int64)
+    coarse = tuple(int(n) for n in -(-np.array(shape) // factor))
+    ts = np.arange(0.0, reach_mm + 1e-9, 0.5 * float(sp.min()))
+    idx = np.floor((pts[None] + ts[:, None, None] * unit[None]) / sp + 0.5).astype(np.int64)
+    ok = np.all((idx >= 0) & (idx < np.array(shape)), axis=-1)
+    vals = np.broadcast_to(np.asarray(values, dtype=np.float64)[None], ok.shape)[ok]
+    flat, inverse = np.unique(np.ravel_multi_index(tuple((idx[ok] // factor).T), coarse),
+                              return_inverse=True)
+    total = np.zeros(coarse, dtype=np.float32)
+    count = np.zeros(coarse, dtype=np.float32)
+    total.flat[flat] = np.bincount(inverse, weights=vals)
+    count.flat[flat] = np.bincount(inverse)
+    total = gaussian_filter(total, (1.0,) * 3, mode="constant", copy=False)
+    count = gaussian_filter(count, (1.0,) * 3, mode="constant", copy=False)
+    floor = np.float32(1e-3)
+    far = count <= floor
+    total /= np.maximum(count, floor)
+    total[far] = default
+    return total[np.ix_(*(np.arange(n) // f for n, f in zip(shape, factor)))]
 
 
 def boundary_fraction(image_s: NDArray, model, spacing: Sequence[float], polarity: int,

@@ -248,11 +248,41 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         branching(model)
     report("two classes", 0.5)
 
-    def inside_and_shell(surface, win):
-        # The voxels inside the surface, and the shell between shell_gap_mm and shell_mm
-        # outside it where the outside is read, on the window's grid.
-        inside, shell = beyond(surface, win, shell_mm)
-        return inside, (shell > gap_mm) & (shell <= shell_mm)
+    # The farthest a point's gap reaches: blur_gaps widths of the widest blur its profile can
+    # read (a fall whose half-maximum lies at both ends of the profile, 2 blur_reach_mm wide).
+    gap_cap = max(gap_mm, p.blur_gaps * 2.0 * p.blur_reach_mm / rg.FWHM_PER_WIDTH)
+    thick = shell_mm - gap_mm
+
+    def inside_and_shell(surface, win, far=True):
+        # The voxels inside the surface, the shell between shell_gap_mm and shell_mm outside
+        # it where the outside is read, on the window's grid, and the distance outside it (up to
+        # the farthest gap where ``far``, for read_beyond).
+        inside, distance = beyond(surface, win,
+                                  gap_cap + thick if far and p.blur_gaps > 0 else shell_mm)
+        return inside, (distance > gap_mm) & (distance <= shell_mm), distance
+
+    def read_beyond(shell, distance, win, gaps):
+        # The shell the density reads: with ``gaps`` (the surface's area samples, their normals
+        # and each one's gap, mm) as thick as the fixed one beyond each point's own gap, shared
+        # at the resolution the outside's mean is shared at (or finer).
+        if gaps is None:
+            return shell
+        pts, unit, gap = gaps
+        own = rg.along_normals(gap, (pts - win.origin_mm, unit), win.shape, sp, gap_cap + thick,
+                               gap_mm, 0.5 * p.outside_smooth_mm)
+        return (distance > own) & (distance <= own + thick)
+
+    def blur_gaps(surface, polarity):
+        # Each area sample's gap: beyond blur_gaps widths of its step's own blur (the width
+        # measured on I_s less its smoothing), None where no point needs more than the gap.
+        if p.blur_gaps <= 0:
+            return None
+        pts, unit, _ = surface.area_samples(4)
+        width = rg.step_widths(image_s, (pts, unit), sp, polarity, p.blur_reach_mm,
+                               p.step_spreads * intensity.sigma)
+        blur = np.sqrt(np.maximum(width ** 2 - p.smooth_mm ** 2, 0.0))
+        gap = np.clip(p.blur_gaps * blur, gap_mm, gap_cap)
+        return (pts, unit, gap) if gap.max() > gap_mm else None
 
     last = p.two_class_rounds - 1
     final, record = None, None  # (the last stage's run.last, and its restart record)
@@ -266,7 +296,8 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
         if restart is not None and k == last:
             start = model_from_dict(restart["round_start"])
         sub = image_s[win.slices]
-        inside, shell = inside_and_shell(start, win)
+        # (after the last round only the fixed shell, which scores the result)
+        inside, shell, distance = inside_and_shell(start, win, far=k < p.two_class_rounds)
         if not inside.any():
             raise SegmentationError("the surface encloses no voxel centre")
         if not shell.any():
@@ -291,15 +322,20 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
             separated = rg.class_separation(sub, inside, shell)
             run.timings["edge_map_s"] += time.perf_counter() - t0
             break
+        gaps = blur_gaps(start, polarity)
+        read = read_beyond(shell, distance, win, gaps)
+        del distance
         run.timings["edge_map_s"] += time.perf_counter() - t0
 
-        def density(w_win, out, shell=shell):
+        def density(w_win, out, read=read, gaps=gaps):
             # The two classes with the outside read around the round's starting surface (in a
-            # grown window, read again there).
+            # grown window, read again there), beyond each point's own blur.
             if w_win != win:
-                shell = inside_and_shell(start, w_win)[1]
+                _, shell, distance = inside_and_shell(start, w_win)
+                read = read_beyond(shell, distance, w_win, gaps)
+                del shell, distance
             sub = image_s[w_win.slices]
-            mu_out = rg.local_outside_mean(sub, shell, sp, p.outside_smooth_mm)
+            mu_out = rg.local_outside_mean(sub, read, sp, p.outside_smooth_mm)
             rg.two_class_blend(image[w_win.slices], sub, intensity, mu_out, out)
             del mu_out
             if p.edge_length_mm > 0:
@@ -315,7 +351,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                               None if k == last else p.interim_tol, stationary=k == last,
                               resume=resume)
         if k < last:
-            del density, shell
+            del density, shell, read
             branching(model)
             if respace:
                 model = interpolate_tube(model, model.m2)
@@ -362,7 +398,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     # (how deep the start's centre, the click, lies in the result: not for a saved surface)
     depth = rg.click_depth(inside, sp, _centre(init) - win.origin_mm) \
         if init.kind == "sphere" and not on_boundary else None
-    del inside, shell
+    del inside, shell, distance
     report("done", 1.0)
     on_step = rg.boundary_fraction(image_s, model, sp, polarity,
                                    p.step_spreads * intensity.sigma, p.step_depth_mm)
