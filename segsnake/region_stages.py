@@ -272,7 +272,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                                gap_mm, 0.5 * p.outside_smooth_mm)
         return (distance > own) & (distance <= own + thick)
 
-    def blur_gaps(surface, polarity):
+    def own_gaps(surface, polarity):
         # Each area sample's gap: beyond blur_gaps widths of its step's own blur (the width
         # measured on I_s less its smoothing), None where no point needs more than the gap.
         if p.blur_gaps <= 0:
@@ -322,7 +322,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
             separated = rg.class_separation(sub, inside, shell)
             run.timings["edge_map_s"] += time.perf_counter() - t0
             break
-        gaps = blur_gaps(start, polarity)
+        gaps = own_gaps(start, polarity)
         read = read_beyond(shell, distance, win, gaps)
         del distance
         run.timings["edge_map_s"] += time.perf_counter() - t0
@@ -331,7 +331,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
             # The two classes with the outside read around the round's starting surface (in a
             # grown window, read again there), beyond each point's own blur.
             if w_win != win:
-                _, shell, distance = inside_and_shell(start, w_win)
+                _, shell, distance = inside_and_shell(start, w_win, far=gaps is not None)
                 read = read_beyond(shell, distance, w_win, gaps)
                 del shell, distance
             sub = image_s[w_win.slices]
