@@ -72,7 +72,8 @@ class RegionParams:
     blur_gaps: float = 2.0
     #: ... the blur read along the normal this far inside and outside the surface (mm): a
     #: step's fall is read to where it has dropped to half its peak, 1.18 widths from its
-    #: centre, so blurs up to about 5 mm, with room for a surface that sits inside its step.
+    #: centre: a blur of 3 mm (3.2 with the smoothing) in full from a surface up to 2 mm off
+    #: its centre, and up to about 5 mm from one on it.
     blur_reach_mm: float = 6.0
     #: ... and averaged along the surface over this width (mm): the outside changes along a
     #: structure (white matter on one side, CSF on the other), not within a few mm.
@@ -174,7 +175,8 @@ class RegionParams:
     min_separation: float = 1.0
     #: Quality score (reported, not acted on): the surface is on a step where the intensity
     #: ``step_depth_mm`` inside and outside it differ, with the object's polarity, by more than
-    #: ``step_spreads`` click spreads (twice the noise's spread is what a real step exceeds).
+    #: ``step_spreads`` click spreads (twice the noise's spread is what a real step exceeds;
+    #: the weakest step whose blur :attr:`blur_gaps` reads beyond, too).
     #: (A warning below half of the area was tried: on the real benchmark it flagged brains of
     #: Dice 0.92-0.94 and missed a thalamus of 0.11, so it is not a failure test.)
     step_depth_mm: float = 2.0
@@ -256,9 +258,8 @@ def coarse_factors(radius_mm: float, spacing: Sequence[float], growth_mm: float,
 #: quality scores and failure warnings) and do not enter the energy: a restart record
 #: (:func:`segsnake.pipeline.restart_options`) does not depend on them, so a result saved before
 #: one of them was added or changed still restarts unchanged.
-JUDGING_FIELDS = frozenset({"min_separation", "step_depth_mm", "step_spreads",
-                            "min_class_separation", "min_click_depth", "max_step_beyond",
-                            "step_reach_mm"})
+JUDGING_FIELDS = frozenset({"min_separation", "step_depth_mm", "min_class_separation",
+                            "min_click_depth", "max_step_beyond", "step_reach_mm"})
 
 #: The :class:`RegionParams` fields that only shape a sphere's growth passes (stage 1), which a
 #: run from a saved surface never runs: a restart record does not depend on them either, so a
@@ -475,26 +476,31 @@ def step_widths(image_s: NDArray, samples: tuple[NDArray, NDArray], spacing: Seq
 
 
 def along_normals(values: NDArray, samples: tuple[NDArray, NDArray], shape: Sequence[int],
-                  spacing: Sequence[float], reach_mm: float, default: float,
-                  bin_mm: float) -> NDArray:
+                  spacing: Sequence[float], reach_mm: float, default: float, bin_mm: float,
+                  offset: Sequence[int] = (0, 0, 0)) -> NDArray:
     """A field on the grid (float32) that carries each point's value out along its normal: at
     each voxel, the mean of the ``values`` of the points of ``samples`` (points in the grid's mm,
-    outward unit normals) whose normal passes within ``reach_mm`` outside through its bin (the
-    grid's voxels binned by the integer factor along each axis that keeps a bin within
-    ``bin_mm``; the normal read every half of the finest voxel), shared with the neighbouring
-    bins by a normalized Gaussian of one bin, so that normals that diverge leave no gaps;
-    ``default`` where none passes near."""
+    outward unit normals) whose normal passes within ``reach_mm`` outside through its bin,
+    shared with the neighbouring bins by a normalized Gaussian of one bin, so that normals that
+    diverge leave no gaps; ``default`` where none passes near. The bins are the image's voxels
+    grouped by the integer factor along each axis that keeps a bin within ``bin_mm``, counted
+    from the image's first voxel (``offset``: the index of the grid's first voxel in the image),
+    so that grids cut from one image at different places bin it alike; the normal is read every
+    half of the finest voxel."""
     pts, unit = samples
     sp = np.asarray(spacing, dtype=np.float64)
-    shape = tuple(int(n) for n in shape)
+    shape = np.array([int(n) for n in shape])
+    off = np.asarray(offset, dtype=np.int64)
     factor = np.maximum(1, np.floor(bin_mm / sp + 1e-9)).astype(np.int64)
-    coarse = tuple(int(n) for n in -(-np.array(shape) // factor))
+    first = off // factor  # (the image's bin of the grid's first voxel)
+    coarse = tuple(int(n) for n in (off + shape - 1) // factor - first + 1)
     ts = np.arange(0.0, reach_mm + 1e-9, 0.5 * float(sp.min()))
     idx = np.floor((pts[None] + ts[:, None, None] * unit[None]) / sp + 0.5).astype(np.int64)
-    ok = np.all((idx >= 0) & (idx < np.array(shape)), axis=-1)
+    ok = np.all((idx >= 0) & (idx < shape), axis=-1)
     vals = np.broadcast_to(np.asarray(values, dtype=np.float64)[None], ok.shape)[ok]
-    flat, inverse = np.unique(np.ravel_multi_index(tuple((idx[ok] // factor).T), coarse),
-                              return_inverse=True)
+    flat, inverse = np.unique(
+        np.ravel_multi_index(tuple(((idx[ok] + off) // factor - first).T), coarse),
+        return_inverse=True)
     total = np.zeros(coarse, dtype=np.float32)
     count = np.zeros(coarse, dtype=np.float32)
     total.flat[flat] = np.bincount(inverse, weights=vals)
@@ -505,7 +511,8 @@ def along_normals(values: NDArray, samples: tuple[NDArray, NDArray], shape: Sequ
     far = count <= floor
     total /= np.maximum(count, floor)
     total[far] = default
-    return total[np.ix_(*(np.arange(n) // f for n, f in zip(shape, factor)))]
+    return total[np.ix_(*((np.arange(n) + o) // f - b
+                          for n, o, f, b in zip(shape, off, factor, first)))]
 
 
 def boundary_fraction(image_s: NDArray, model, spacing: Sequence[float], polarity: int,

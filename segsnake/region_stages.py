@@ -264,12 +264,14 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     def read_beyond(shell, distance, win, gaps):
         # The shell the density reads: with ``gaps`` (the surface's area samples, their normals
         # and each one's gap, mm) as thick as the fixed one beyond each point's own gap, shared
-        # at the resolution the outside's mean is shared at (or finer).
+        # at the resolution the outside's mean is shared at (or finer). (Where the surface lies
+        # nearer a face of the window than its gap and shell, the part beyond the face is not
+        # read: the outside's mean comes from the rest.)
         if gaps is None:
             return shell
         pts, unit, gap = gaps
         own = rg.along_normals(gap, (pts - win.origin_mm, unit), win.shape, sp, gap_cap + thick,
-                               gap_mm, 0.5 * p.outside_smooth_mm)
+                               gap_mm, 0.5 * p.outside_smooth_mm, win.lo)
         return (distance > own) & (distance <= own + thick)
 
     def own_gaps(surface, polarity):

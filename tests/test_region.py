@@ -370,6 +370,10 @@ def test_along_normals_carries_each_points_value_out_along_its_normal():
     assert binned[4, 2, 6] == pytest.approx(3.0) and binned[6, 14, 7] == pytest.approx(7.0)
     assert binned[4, 3, 7] == binned[4, 2, 6]
     assert binned[8, 8, 6] == pytest.approx(5.0)  # (three bins from both: shared by both)
+    # a grid cut from the same image one voxel further on bins it as the whole grid does
+    part = along_normals(np.array([3.0, 7.0]), (pts - [0.0, 1.0, 1.0], unit), (10, 15, 11),
+                         (2.0, 1.0, 1.0), 8.0, -1.0, 2.0, offset=(0, 1, 1))
+    assert np.array_equal(part, binned[:, 1:, 1:])
 
 
 def test_blend_trusts_the_two_classes_only_where_the_outside_differs():
