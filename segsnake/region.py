@@ -39,7 +39,7 @@ from segsnake.errors import SegmentationError
 from segsnake.parallel import gaussian_filter
 
 __all__ = ["RegionParams", "IntensityModel", "smoothed", "image_range", "region_density",
-           "boundary_fraction", "step_beyond", "step_widths", "along_normals", "FWHM_PER_WIDTH",
+           "boundary_fraction", "step_beyond", "step_widths", "widest_step", "along_normals",
            "weighted_median", "blend", "two_class_blend", "local_outside_mean",
            "two_class_density", "edge_density", "step_contrast", "class_separation",
            "click_depth", "coarse_factors", "JUDGING_FIELDS", "PASS_FIELDS"]
@@ -406,6 +406,12 @@ def click_depth(inside: NDArray[np.bool_], spacing: Sequence[float],
 FWHM_PER_WIDTH = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
 
+def widest_step(reach_mm: float) -> float:
+    """The widest step :func:`step_widths` can read with this reach (mm): a fall whose
+    half-maximum lies at both ends of its profile, ``2 reach_mm`` long."""
+    return 2.0 * reach_mm / FWHM_PER_WIDTH
+
+
 def _along_normals(image_s: NDArray, samples: tuple[NDArray, NDArray], spacing: Sequence[float],
                    offsets_mm: NDArray) -> NDArray:
     """``I_s(x + t n)`` for each offset ``t`` (rows) and each point ``x`` with its outward unit
@@ -505,12 +511,9 @@ def along_normals(values: NDArray, samples: tuple[NDArray, NDArray], shape: Sequ
     count = np.zeros(coarse, dtype=np.float32)
     total.flat[flat] = np.bincount(inverse, weights=vals)
     count.flat[flat] = np.bincount(inverse)
-    total = gaussian_filter(total, (1.0,) * 3, mode="constant", copy=False)
-    count = gaussian_filter(count, (1.0,) * 3, mode="constant", copy=False)
-    floor = np.float32(1e-3)
-    far = count <= floor
-    total /= np.maximum(count, floor)
-    total[far] = default
+    total = _weighted_mean(gaussian_filter(total, (1.0,) * 3, mode="constant", copy=False),
+                           gaussian_filter(count, (1.0,) * 3, mode="constant", copy=False),
+                           default)
     return total[np.ix_(*((np.arange(n) + o) // f - b
                           for n, o, f, b in zip(shape, off, factor, first)))]
 
@@ -566,11 +569,17 @@ def local_outside_mean(image_s: NDArray, shell: NDArray, spacing: Sequence[float
     weight = gaussian_filter(shell.astype(np.float32), sigma, mode="nearest", copy=False)
     total = gaussian_filter(np.where(shell, image_s, np.float32(0)), sigma, mode="nearest",
                             copy=False)
-    fallback = np.float32(np.median(image_s[shell]))
+    return _weighted_mean(total, weight, np.float32(np.median(image_s[shell])))
+
+
+def _weighted_mean(total: NDArray, weight: NDArray, default) -> NDArray:
+    """A normalized convolution's result: the smoothed weighted values ``total`` over the
+    smoothed weights ``weight``, ``default`` where the weights vanish (1e-3 or less); in place
+    in ``total``, whose ``weight`` it overwrites."""
     floor = np.float32(1e-3)
     far = weight <= floor
     total /= np.maximum(weight, floor, out=weight)
-    total[far] = fallback
+    total[far] = default
     return total
 
 

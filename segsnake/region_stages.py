@@ -249,8 +249,8 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
     report("two classes", 0.5)
 
     # The farthest a point's gap reaches: blur_gaps widths of the widest blur its profile can
-    # read (a fall whose half-maximum lies at both ends of the profile, 2 blur_reach_mm wide).
-    gap_cap = max(gap_mm, p.blur_gaps * 2.0 * p.blur_reach_mm / rg.FWHM_PER_WIDTH)
+    # read.
+    gap_cap = max(gap_mm, p.blur_gaps * rg.widest_step(p.blur_reach_mm))
     thick = shell_mm - gap_mm
 
     def inside_and_shell(surface, win, far=True):
