@@ -108,11 +108,13 @@ class RegionParams:
     #: decision is the same from 0.005 to 0.026.
     finer_departure: float = 0.02
     #: The schedule goes on past a kept grid while that grid lowered the image energy by at
-    #: least this fraction of it (dimensionless, (E_coarse - E_fine) / |E_coarse| at a common
+    #: least this fraction of it (dimensionless, (E_coarse - E_fine) / |E_coarse| at a resolved
     #: quadrature): a grid that gains less shows the detail left is below what the next one
     #: would pay for in time (each finer grid costs more than the one before; the gains fall
     #: steadily, 1.6-15 % at 13 x 13 to below 1 % by 13-33 on the perfect-edge structures).
-    #: The grid that gained less is kept: this only decides whether to try the next.
+    #: The grid that gained less is kept: this only decides whether to try the next. The first
+    #: finer grid's gain, read against the last round's surface (one of several minima on a
+    #: noisy image), decides nothing: the second finer grid is always tried.
     finer_gain: float = 0.01
     #: A sphere's first finer grid is fitted to the surface with its poles at the ends of the
     #: surface's long axis (:func:`segsnake.resample.poles_on_long_axis`) rather than projected

@@ -145,7 +145,7 @@ def test_region_stages_with_the_edge_term():
 
 
 def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
-    ph = make_phantom("blob", seed=0, noise=0.2)
+    ph = make_phantom("blob", seed=0, noise=0.1)
     truth = ph.truth.astype(bool)
     coarse = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(
         {**ph.init, "coarse_to_fine": False}))
@@ -154,7 +154,8 @@ def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
     fine = segment_volume(ph.image, ph.spacing, config)
     grids = [h for h in fine.history if h["stage"].startswith("grid")]
     # The schedule ends after the first grid that gains less than finer_gain (measured: 13 x
-    # 13 gains 1.3 %, 17 x 17 0.3 %) ...
+    # 13 gains 1.42 %, 17 x 17 0.32 %; 1.37-1.42 % and 0.30-0.32 % under 1e-12 gradient
+    # perturbations) ...
     assert [h["stage"] for h in grids] == ["grid 13x13", "grid 17x17"]
     gain = RegionParams().finer_gain
     assert grids[0]["image_energy_gain"] >= gain > grids[1]["image_energy_gain"]
@@ -165,7 +166,7 @@ def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
         finer_m=(13, 17, 21), finer_gain=0.0))
     assert [h["stage"] for h in on.history if h["stage"].startswith("grid")] == \
         ["grid 13x13", "grid 17x17", "grid 21x21"] and on.model.m1 == 21
-    # measured: the lobes the 9 x 9 grid smooths away come back, 0.974 -> 0.985
+    # measured: the lobes the 9 x 9 grid smooths away come back, 0.977 -> 0.993
     assert dice(fine.mask, truth) >= dice(coarse.mask, truth) + 0.005
     # A refinement: the lobes come back within the coarser grid's control spacing, with the
     # enclosed volume within a few per cent.
@@ -178,6 +179,22 @@ def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
     grids = [h for h in tight.history if h["stage"].startswith("grid")]
     assert [h["kept"] for h in grids] == [False] and tight.model.m1 == 9
     assert np.array_equal(tight.mask, coarse.mask) and tight.energy == coarse.energy
+
+
+def test_the_energy_gain_is_read_where_both_surfaces_energies_are_resolved():
+    # A noisier blob whose 9 x 9 surface has knot intervals up to 15 mm. Read at the order the
+    # finer grid's own intervals ask for (8), that surface's image energy is off by 0.5 %, and
+    # the 13 x 13 grid's gain read 0.71 %: the schedule stopped there (when the first finer
+    # grid's gain could still end it), while three 1e-12 gradient perturbations read
+    # 1.04-1.77 % and went on to 17 x 17 (Dice 0.9873 against 0.991). At twice the stages' own
+    # orders (16) it reads 1.27 %, as at 24, 32 and 48.
+    ph = make_phantom("blob", seed=0, noise=0.3)
+    res = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(ph.init))
+    grids = [h for h in res.history if h["stage"].startswith("grid")]
+    assert [h["stage"] for h in grids] == ["grid 13x13", "grid 17x17"]
+    assert 0.0115 < grids[0]["image_energy_gain"] < 0.014  # measured 0.0127
+    assert grids[1]["image_energy_gain"] < RegionParams().finer_gain  # 0.0047
+    assert dice(res.mask, ph.truth.astype(bool)) >= 0.99  # 0.9908
 
 
 def test_a_finer_grid_that_leaks_through_a_neck_is_refused():
@@ -216,19 +233,23 @@ def test_a_finer_grid_that_refines_the_surface_is_kept_whatever_its_energy_gain(
     # 13 x 13 grid's image energy gain came out negative (-0.7 %) or positive (under a 1e-12
     # gradient perturbation) as the grid's path went, and a test on its sign refused the grid
     # in one run and kept it in the other: Dice 0.9797 against 0.9879 (docs/benchmarks.md,
-    # session 18). The gain only decides whether a finer grid is tried after it.
+    # session 18). (Read at a resolved quadrature, session 34, the gain is +0.48 %: the sign
+    # had been the coarser surface's under-resolved energy.) The gain only decides whether a
+    # finer grid is tried after it, and the first finer grid's does not even that.
     ph = make_phantom("blob", seed=3, noise=0.3, spacing=(1.0, 1.0, 2.0))
     res = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(ph.init))
     grids = [h for h in res.history if h["stage"].startswith("grid")]
-    assert [h["stage"] for h in grids] == ["grid 13x13"]  # (measured gain -0.9 %)
-    assert grids[0]["kept"] and grids[0]["departure"] <= RegionParams().finer_departure
-    assert grids[0]["image_energy_gain"] < RegionParams().finer_gain
-    assert res.model.m1 == 13 and dice(res.mask, ph.truth.astype(bool)) >= 0.98  # 0.984
+    gain = RegionParams().finer_gain
+    # measured gains 0.48 % and 0.36 %: 13 x 13 is kept and followed, 17 x 17 ends the schedule
+    assert [h["stage"] for h in grids] == ["grid 13x13", "grid 17x17"]
+    assert all(h["kept"] and h["departure"] <= RegionParams().finer_departure for h in grids)
+    assert all(h["image_energy_gain"] < gain for h in grids)
+    assert res.model.m1 == 17 and dice(res.mask, ph.truth.astype(bool)) >= 0.98  # 0.987
     # (a grid that departs by exactly the threshold is kept: here by 0 at a threshold of 0)
-    assert grids[0]["departure"] == 0
+    assert all(h["departure"] == 0 for h in grids)
     at_zero = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(ph.init),
                              region_params=RegionParams(finer_departure=0.0))
-    assert at_zero.model.m1 == 13 and np.array_equal(at_zero.mask, res.mask)
+    assert at_zero.model.m1 == 17 and np.array_equal(at_zero.mask, res.mask)
 
 
 def test_coarse_to_fine_refines_a_tube_around_and_keeps_its_rings():
