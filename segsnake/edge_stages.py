@@ -305,7 +305,8 @@ class EdgeRun(Run):
         negative in the concave necks of lobed shapes and folds them.)
 
         Beyond the field of view ``lap(-d)`` is zero (:data:`FOV_PAD`; no edge is known there):
-        a tube that leaves the volume feels nothing past the face, and its tension ends it there.
+        a tube that leaves the volume feels nothing past the face, and its tension lets go
+        where its end ring reaches past the face (:class:`segsnake.energy.AxialTension`).
         """
         if not edges.any():
             raise SegmentationError("no edges found outside the initial surface")

@@ -233,7 +233,8 @@ class SumEnergy:
 
 @dataclass
 class AxialTension:
-    """``weight * |c1 - c0|``: a pull between the end rings' centres of a cylinder.
+    """``weight * |c1 - c0|`` (the part of it inside ``box``): a pull between the end rings'
+    centres of a cylinder.
 
     ``c0`` and ``c1`` are the mean points of the rings ``sigma(u, 0)`` and ``sigma(u, 1)``
     (over u: the mean of the control grid's rows weighted by the axial basis at v = 0 and 1,
@@ -241,23 +242,85 @@ class AxialTension:
     gradient is also a pressure of ``weight * (k1 + k2)`` on the whole lateral surface, this
     acts only along the axis: it pulls the ends in where no edge holds them, and leaves the
     radius to the image.
+
+    ``box`` (lower and upper corner, mm): the field of view. Only the part of the segment
+    ``c0 c1`` along which the end rings lie wholly inside it is pulled on: the box shrunk on
+    each side by the end rings' half extent along that axis (of ``model``, the stage's
+    reference surface). An end whose ring reaches past a face of the volume is where the image
+    ends, not where no edge holds it: the tube goes on out until its ring has left the volume,
+    and the mask ends on the face. Pulled on up to the face itself, an oblique tube's end
+    stopped a few mm inside it, where the wall still inside no longer paid for the tension, at
+    a place that moved with the optimizer's path. (The length inside the box also depends on
+    the axis' direction: a clipped end is still pulled a little across the axis, towards the
+    face's normal. A tube that runs along a face within a ring's reach of it is not pulled on
+    at all, and the clipping follows the straight line between the centres, not a bent
+    centreline.)
     """
 
     model: SplineSurface
     weight: float = 1.0
+    box: tuple[NDArray, NDArray] | None = None
 
     def __post_init__(self) -> None:
         self.ends = self.model._basis_v(np.array([0.0, 1.0]), 0)  # (2, L)
+        if self.box is not None:
+            rings = self.model.end_rings(4 * self.model.m1)
+            reach = np.max([np.abs(ring - ring.mean(axis=0)).max(axis=0) for ring in rings],
+                           axis=0)
+            # (the box the rings' centres must stay in; ``box`` itself is kept as given)
+            self.inner = (np.asarray(self.box[0], float) + reach,
+                          np.asarray(self.box[1], float) - reach)
+        else:
+            self.inner = None
 
     def value_and_grad(self, params: NDArray) -> tuple[float, NDArray]:
         C = self.model.control_points(params)
         rows = C.mean(axis=0)  # (L, 3)
-        d = (self.ends[1] - self.ends[0]) @ rows
-        length = float(np.linalg.norm(d))
-        e = d / max(length, 1e-300)
-        grad_C = np.broadcast_to((self.ends[1] - self.ends[0])[None, :, None] * e / self.model.m1,
-                                 C.shape)
+        c0, c1 = self.ends @ rows
+        length, (g0, g1) = _clipped_length(c0, c1, self.inner)
+        # d length / d rows, through c0 = ends[0] @ rows and c1 = ends[1] @ rows
+        g_rows = np.outer(self.ends[0], g0) + np.outer(self.ends[1], g1)
+        grad_C = np.broadcast_to(g_rows[None] / self.model.m1, C.shape)
         return self.weight * length, self.weight * self.model.grid_gradient_to_params(grad_C)
+
+
+def _clipped_length(c0: NDArray, c1: NDArray, box) -> tuple[float, tuple[NDArray, NDArray]]:
+    """The length of the segment ``c0 c1`` inside the axis-aligned ``box`` (all of it when
+    ``box`` is None) and its gradients with respect to ``c0`` and ``c1``.
+
+    The segment ``c0 + t d`` (``d = c1 - c0``) lies in the box for ``t`` in ``[t0, t1]``: ``t0``
+    the largest of 0 and its entries through the faces' planes, ``t1`` the smallest of 1 and
+    its exits; the length is ``(t1 - t0) |d|``. A crossing ``t = (b - c0_k) / d_k`` moves with
+    ``c0_k`` by ``(t - 1) / d_k`` and with ``c1_k`` by ``-t / d_k``."""
+    d = c1 - c0
+    norm = float(np.linalg.norm(d))
+    e = d / max(norm, 1e-300)
+    if box is None:
+        return norm, (-e, e)
+    lo, hi = box
+    if np.any(lo > hi):  # (an empty box: rings wider than the volume along an axis)
+        return 0.0, (np.zeros(3), np.zeros(3))
+    t0, t1 = 0.0, 1.0
+    k0 = k1 = None  # (the axis whose face sets t0 and t1; None: the segment's own end)
+    for k in range(3):
+        if abs(d[k]) < 1e-12 * max(norm, 1e-300):
+            if c0[k] < lo[k] or c0[k] > hi[k]:
+                return 0.0, (np.zeros(3), np.zeros(3))
+            continue
+        ta, tb = (lo[k] - c0[k]) / d[k], (hi[k] - c0[k]) / d[k]
+        enter, leave = min(ta, tb), max(ta, tb)
+        if enter > t0:
+            t0, k0 = enter, k
+        if leave < t1:
+            t1, k1 = leave, k
+    if t1 <= t0:
+        return 0.0, (np.zeros(3), np.zeros(3))
+    g0, g1 = -(t1 - t0) * e, (t1 - t0) * e
+    for t, k, sign in ((t1, k1, 1.0), (t0, k0, -1.0)):
+        if k is not None:
+            g0[k] += sign * norm * (t - 1.0) / d[k]
+            g1[k] += sign * norm * (-t) / d[k]
+    return (t1 - t0) * norm, (g0, g1)
 
 
 @dataclass

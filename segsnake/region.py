@@ -87,8 +87,8 @@ class RegionParams:
     #: turn, each from the surface before it (:attr:`long_axis_poles`); a tube's (M1 not given)
     #: on these numbers of control points around, its rings along staying those its calibre
     #: chose. The schedule ends at
-    #: the first grid refused (:attr:`finer_departure`), at the first that gains less than
-    #: :attr:`finer_gain`, or at its last, 37: about 1.5 mm between control points on the
+    #: the first grid refused (:attr:`finer_departure`), at the first after 13 that gains less
+    #: than :attr:`finer_gain`, or at its last, 37: about 1.5 mm between control points on the
     #: hippocampus, the edge term's smoothing width (docs/benchmarks.md, session 19).
     finer_m: tuple[int, ...] = (13, 17, 21, 25, 29, 33, 37)
     #: ... each kept while it *refines* the surface rather than moving it
@@ -110,8 +110,8 @@ class RegionParams:
     #: The schedule goes on past a kept grid while that grid lowered the image energy by at
     #: least this fraction of it (dimensionless, (E_coarse - E_fine) / |E_coarse| at a resolved
     #: quadrature): a grid that gains less shows the detail left is below what the next one
-    #: would pay for in time (each finer grid costs more than the one before; the gains fall
-    #: steadily, 1.6-15 % at 13 x 13 to below 1 % by 13-33 on the perfect-edge structures).
+    #: would pay for in time (each finer grid costs more than the one before; on the
+    #: perfect-edge structures the gains are 0.7-15 % at 13 x 13 and fall below 1 % by 21-33).
     #: The grid that gained less is kept: this only decides whether to try the next. The first
     #: finer grid's gain, read against the last round's surface (one of several minima on a
     #: noisy image), decides nothing: the second finer grid is always tried.

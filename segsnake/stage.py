@@ -460,16 +460,21 @@ def stage_energy(model, lookup, weight, order, extra_energy, region=False,
         slab = per_area * area / rings
         terms.append(RingBarrier(model, model.params, weight=slab))
     if model.kind == "cylinder" and not region:
-        # Past the end of a sheet (a hollow tube's open end) or the field of view the edge
-        # map is empty: the caps feel no flux there, and without tension the ends drift on.
+        # Past the end of a sheet (a hollow tube's open end) the edge map is empty: the caps
+        # feel no flux there, and without tension the ends drift on.
         # Tension makes a tube's length without edge support cost a fraction of what
         # surface on an edge gains (the edge map peaks at about 1 per mm^2): CYLINDER_TENSION
         # per mm^2 of lateral surface, as a pull along the axis only. (Surface tension, the
         # area, also presses on the whole lateral surface with CYLINDER_TENSION / radius, which
         # held tubes whose capture ended 4-5 mm inside the wall out of the refinement's reach:
         # measured when this was introduced: a tube along (1, 1, 0), Jaccard 0.32 -> 0.969.)
+        # Where an end ring reaches past a face of the volume the tension lets go
+        # (AxialTension's box): an end there is where the image ends, and the mask ends on the
+        # face.
         perimeter = 2 * math.pi * r
-        terms.append(AxialTension(model, weight=CYLINDER_TENSION * perimeter))
+        box = (np.zeros(3), lookup.lookup.extent_mm - 2 * lookup.offset) \
+            if isinstance(lookup, _Shifted) else None
+        terms.append(AxialTension(model, weight=CYLINDER_TENSION * perimeter, box=box))
     if extra_energy is not None:
         # The prior's weight is relative to the image energy, scaled like the bending.
         terms.append(_Scaled(extra_energy(model), per_area) if region

@@ -149,6 +149,42 @@ def test_axial_tension_is_the_distance_between_the_end_rings_centres():
                - value) < 1e-9
 
 
+def test_axial_tension_lets_go_where_an_end_ring_reaches_past_the_field_of_view():
+    from segsnake.energy import AxialTension
+
+    # A straight tube along x, radius 2: its end rings reach 2 mm along y and z, none along x.
+    tube = CylinderModel.from_axis([0, 0, 0], [10, 0, 0], 2.0, m1=8, m2=3)
+    far = 50.0
+    # The volume ends at x = 6: the axis is pulled on from 0 to 6 only.
+    cut = AxialTension(tube, weight=0.7, box=(np.array([-far, -far, -far]),
+                                              np.array([6.0, far, far])))
+    assert abs(cut.value_and_grad(tube.params)[0] - 0.7 * 6.0) < 1e-9
+    # A face 1.5 mm from the axis: every ring reaches past it, nothing is pulled on.
+    grazed = AxialTension(tube, weight=0.7, box=(np.array([-far, -1.5, -far]), np.full(3, far)))
+    value, grad = grazed.value_and_grad(tube.params)
+    assert value == 0.0 and not grad.any()
+    # A slab thinner than an oblique tube's rings: no ring is ever wholly inside.
+    oblique = CylinderModel.from_axis([0, 0, 0], [10, 0, 3], 2.0, m1=8, m2=3)
+    slab = AxialTension(oblique, weight=0.7, box=(np.array([-far, -far, 0.5]),
+                                                  np.array([far, far, 2.5])))
+    value, grad = slab.value_and_grad(oblique.params)
+    assert value == 0.0 and not grad.any()
+    # Far from every face it is the whole pull, value and gradient.
+    model = _perturbed(CylinderModel.from_axis([1, 2, 3], [9, 4, 2], 2.0, m1=6, m2=3), 4, 0.2)
+    whole = AxialTension(model, weight=0.7)
+    inside = AxialTension(model, weight=0.7, box=(np.full(3, -far), np.full(3, far)))
+    assert np.allclose(inside.value_and_grad(model.params)[1],
+                       whole.value_and_grad(model.params)[1], rtol=1e-12, atol=1e-12)
+    # Cut by one face, then by two, the gradient is the clipped length's.
+    for lo_x, hi_x in ((-far, 8.0), (3.0, 8.0)):
+        term = AxialTension(model, weight=0.7, box=(np.array([lo_x, -far, -far]),
+                                                    np.array([hi_x, far, far])))
+        value, grad = term.value_and_grad(model.params)
+        assert 0 < value < whole.value_and_grad(model.params)[0]
+        fd = central_difference_gradient(term, model.params)
+        assert np.linalg.norm(grad - fd) / np.linalg.norm(fd) < 1e-6
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_closed_cylinder_flux_is_the_capped_volume_in_any_orientation(seed):
     # Oblique, bent and uneven: the lateral surface alone misses its caps' flux (the open

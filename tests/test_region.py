@@ -153,9 +153,9 @@ def test_coarse_to_fine_keeps_a_finer_grid_while_it_refines_the_surface():
     config = SegmentConfig.from_mapping({**ph.init, "coarse_to_fine": True})
     fine = segment_volume(ph.image, ph.spacing, config)
     grids = [h for h in fine.history if h["stage"].startswith("grid")]
-    # The schedule ends after the first grid that gains less than finer_gain (measured: 13 x
-    # 13 gains 1.42 %, 17 x 17 0.32 %; 1.37-1.42 % and 0.30-0.32 % under 1e-12 gradient
-    # perturbations) ...
+    # The schedule ends after the first grid past 13 x 13 that gains less than finer_gain
+    # (measured: 13 x 13 gains 1.42 %, 17 x 17 0.32 %; 1.37-1.42 % and 0.30-0.32 % under
+    # 1e-12 gradient perturbations) ...
     assert [h["stage"] for h in grids] == ["grid 13x13", "grid 17x17"]
     gain = RegionParams().finer_gain
     assert grids[0]["image_energy_gain"] >= gain > grids[1]["image_energy_gain"]
@@ -187,7 +187,7 @@ def test_the_energy_gain_is_read_where_both_surfaces_energies_are_resolved():
     # the 13 x 13 grid's gain read 0.71 %: the schedule stopped there (when the first finer
     # grid's gain could still end it), while three 1e-12 gradient perturbations read
     # 1.04-1.77 % and went on to 17 x 17 (Dice 0.9873 against 0.991). At twice the stages' own
-    # orders (16) it reads 1.27 %, as at 24, 32 and 48.
+    # orders (16: read at 32) it reads 1.27 %, as at 16, 24 and 48.
     ph = make_phantom("blob", seed=0, noise=0.3)
     res = segment_volume(ph.image, ph.spacing, SegmentConfig.from_mapping(ph.init))
     grids = [h for h in res.history if h["stage"].startswith("grid")]

@@ -96,8 +96,9 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                         "surface's long axis); a tube without --m1 as many control points "
                         "around after 8; each kept while it moves the surface by less than "
                         "the coarser grid's control spacing (finer detail, not a leak: under "
-                        "2 %% of the volume may lie farther), the next tried while the last one "
-                        "lowered the energy by 1 %% or more (on by default, "
+                        "2 %% of the volume may lie farther), the second finer grid always "
+                        "tried and the next while the last one lowered the energy by 1 %% or "
+                        "more (on by default, "
                         "--no-coarse-to-fine keeps the first grid)")
     m.add_argument("--threshold", default=None, help="edge threshold: auto (default) or a number")
     _position(m, "--seed-point", "keep only the detected surface nearest this voxel")
