@@ -485,8 +485,9 @@ def finer_grids(run, model: SplineSurface, p, advance, image_energy) -> SplineSu
             # (a finer surface that collapsed through itself is no refinement either)
             run.history.append({"stage": name, "kept": False, "error": str(exc)})
             break
-        # Both at twice the finer of the two stages' own orders, each of which agreed with
-        # twice itself (segsnake.stage.QUADRATURE_RTOL): an order chosen from the finer grid's
+        # Both at twice the finer of the two stages' own orders, each checked against twice
+        # itself when its stage ended (segsnake.stage.QUADRATURE_RTOL; at a stage's iteration
+        # cap, the running tolerance): an order chosen from the finer grid's
         # intervals under-resolves the coarser surface's longer ones by as much as the gain
         # tested (a blob's 13 x 13 gained 0.7 % at order 8, 1.3 % at 16 to 48).
         order = tuple(min(2 * max(a, b), MAX_ORDER) for a, b in zip(last["order"],
