@@ -247,7 +247,7 @@ def run_stage(model, lookup, weight, config, bounds, extra_energy, band, feature
                           for length, lo in zip(max_interval, floor))
         fine = tuple(min(2 * o, MAX_ORDER) for o in order)
         energy = stage_energy(reference, lookup, weight, order, extra_energy, region,
-                               crossing_weight)
+                               crossing_weight, bounds)
         check = QuadratureCheck(energy.terms[0], fine, checks, model.params)
         admissible = Admissible(reference, max_interval, follow=region)
         res = minimize_energy(model, energy, max_iter=max(max_iter - iterations, 1),
@@ -429,10 +429,11 @@ class Admissible:
 
 
 def stage_energy(model, lookup, weight, order, extra_energy, region=False,
-                  crossing_weight=0.0) -> SumEnergy:
+                  crossing_weight=0.0, bounds=None) -> SumEnergy:
     """The stage's energy; its first term is the image's :class:`FluxTerm`. A region stage's
     prices the volume its surface wraps other than once at ``crossing_weight`` per mm^3
-    (:class:`CrossingPenalty`)."""
+    (:class:`CrossingPenalty`). ``bounds``: the field of view's upper corner (mm; the lower is
+    the origin), where an edge stage's tube lets go of its tension."""
     flux = FluxTerm(model, lookup, weight=weight, order=order, closed=True)
     terms = [flux]
     # (measured once: the terms' weights all scale with them)
@@ -472,8 +473,7 @@ def stage_energy(model, lookup, weight, order, extra_energy, region=False,
         # (AxialTension's box): an end there is where the image ends, and the mask ends on the
         # face.
         perimeter = 2 * math.pi * r
-        box = (np.zeros(3), lookup.lookup.extent_mm - 2 * lookup.offset) \
-            if isinstance(lookup, _Shifted) else None
+        box = None if bounds is None else (np.zeros(3), np.asarray(bounds, dtype=float))
         terms.append(AxialTension(model, weight=CYLINDER_TENSION * perimeter, box=box))
     if extra_energy is not None:
         # The prior's weight is relative to the image energy, scaled like the bending.
