@@ -10,9 +10,9 @@ $(PY):
 
 # Reinstalled when the build inputs change, or when a compiled kernel is missing.
 $(STAMP): pyproject.toml setup.py segsnake/_sampling.c segsnake/_scan.c segsnake/_flux.c \
-		segsnake/_buffers.h \
+		segsnake/_distance.c segsnake/_buffers.h \
 		$(if $(and $(wildcard segsnake/_sampling*.so),$(wildcard segsnake/_scan*.so),\
-		$(wildcard segsnake/_flux*.so)),,FORCE) | $(PY)
+		$(wildcard segsnake/_flux*.so),$(wildcard segsnake/_distance*.so)),,FORCE) | $(PY)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
