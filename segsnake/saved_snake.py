@@ -234,8 +234,9 @@ def load_snake(path: str) -> SplineSurface:
     ----------
     path : str
         A ``snake.json`` written by ``segment`` or ``render`` (its model in scaled index space,
-        the image's affine and spacing), or a ``.mrk.json`` written by ``export-points``
-        (possibly moved in Slicer and saved again, in LPS or RAS).
+        the image's affine and spacing), the output of ``fit`` on a mask (likewise, the mask's
+        grid), or a ``.mrk.json`` written by ``export-points`` (possibly moved in Slicer and
+        saved again, in LPS or RAS).
 
     Returns
     -------
@@ -255,7 +256,7 @@ def load_snake(path: str) -> SplineSurface:
 def load_snake_and_record(path: str) -> tuple[SplineSurface, dict[str, Any] | None]:
     """:func:`load_snake`, and from the same reading of the file its ``restart`` record: what
     defines the energy its last stage ended in (:func:`segsnake.region_stages.segment_region`), or
-    None for a markups file, a ``render`` output or a result without one."""
+    None for a markups file, a fit, a ``render`` output or a result without one."""
     doc = read_json(path, "snake file")
     if isinstance(doc, dict) and "markups" in doc:
         return _model_from_markups(doc, path), None
@@ -264,12 +265,19 @@ def load_snake_and_record(path: str) -> tuple[SplineSurface, dict[str, Any] | No
         raise InputError(f"{path}: a segsnake model without an image grid (no affine); give a "
                          f"snake.json written by segment or render, or a markups file written "
                          f"by export-points")
-    if fmt != "segsnake-result":
+    if fmt == "segsnake-fit" and "affine" not in doc:
+        raise InputError(f"{path}: a segsnake fit of a mesh or point cloud, without an image grid "
+                         f"(a fit of a mask carries its mask's); give a snake.json written by "
+                         f"segment or render, a fit of a mask, or a markups file written by "
+                         f"export-points")
+    if fmt not in ("segsnake-result", "segsnake-fit"):
         raise InputError(f"{path}: neither a segsnake snake.json nor a segsnake markups file")
     try:
         model = model_from_dict(doc["model"])
         affine = np.asarray(doc["affine"], dtype=np.float64)
-        spacing = np.asarray(doc["summary"]["spacing_mm"], dtype=np.float64)
+        # (a fit of a mask keeps its mask's spacing beside the affine; a result in its summary)
+        spacing = np.asarray(doc["spacing_mm"] if fmt == "segsnake-fit"
+                             else doc["summary"]["spacing_mm"], dtype=np.float64)
         if affine.shape != (4, 4) or spacing.shape != (3,) or \
                 not (np.all(np.isfinite(affine)) and np.all(spacing > 0)):
             raise ValueError("bad affine or spacing_mm")

@@ -16,8 +16,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "rebuild the snake with 'segsnake render POINTS.mrk.json --like IMAGE --out DIR' or "
         "refine it with 'segsnake segment IMAGE --init POINTS.mrk.json'.")
     parser.add_argument("snake", metavar="SNAKE.json",
-                        help="a snake.json written by segment or render (or a markups file "
-                             "written by export-points)")
+                        help="a snake.json written by segment or render, a fit of a mask (or "
+                             "a markups file written by export-points)")
     parser.add_argument("--out", required=True, metavar="POINTS.mrk.json",
                         help="the markups file to write")
     parser.add_argument("--coordinate-system", choices=("LPS", "RAS"), default="LPS",

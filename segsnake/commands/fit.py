@@ -4,7 +4,11 @@ INPUT is recognized by its name:
 
 * a binary mask (``.nii``, ``.nii.gz``, ``.mha``, ``.mhd``, ``.nrrd``, ``.nhdr``; non-zero voxels,
   or ``--label N``): its boundary becomes a closed genus-0 mesh in mm of scaled index space
-  (voxel index times spacing, the units of ``snake.json``; :mod:`segsnake.mask_mesh`);
+  (voxel index times spacing, the units of ``snake.json``; :mod:`segsnake.mask_mesh`); the
+  output then carries the mask's grid (``affine``, ``spacing_mm``), which places the fitted
+  snake in the world, so that ``segment --init``, ``render`` and ``export-points`` take it as
+  they take a ``snake.json`` (a rough mask, an atlas' structure or an earlier scan's
+  segmentation, refined on an image);
 * a point cloud (``.npy``, ``.txt``, ``.csv``, ``.xyz``, ``.pts``): three columns ``x y z`` are
   meshed with pyvista's surface reconstruction and the errors are measured at the points; five
   columns ``x y z u v`` are a *parameterized* cloud (seed 000 sec. 6.2) fitted directly;
@@ -138,7 +142,7 @@ def _mask(path: str, label: int | None):
     if not mask.any():
         what = f"label {label}" if label is not None else "non-zero voxel"
         raise InputError(f"{path}: the mask has no {what}")
-    return mask, volume.spacing
+    return mask, volume.spacing, volume.affine
 
 
 def _step_rows(steps) -> list[dict]:
@@ -170,11 +174,14 @@ def run(args: argparse.Namespace) -> int:
         raise OutputError(f"{args.out}: exists (use --overwrite to replace it)")
 
     info: dict = {"input": args.input}
+    grid: dict = {}  # (a mask's: where its scaled index space lies in the world)
     try:
         if _has_suffix(args.input, MASK_SUFFIXES) or os.path.isdir(args.input):
             from segsnake.mask_mesh import mask_surface
 
-            mask, spacing = _mask(args.input, args.label)
+            mask, spacing, affine = _mask(args.input, args.label)
+            grid = {"affine": np.asarray(affine, dtype=np.float64).tolist(),
+                    "spacing_mm": [float(x) for x in spacing]}
             surf = mask_surface(mask, spacing)
             info.update(input_kind="mask", smoothing_voxels=surf.sigma_voxels,
                         mask_to_surface_rms_mm=surf.distance_to_mask_rms,
@@ -227,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
                 rms_target_mm=result.rms_target, target_met=result.target_met,
                 steps=_step_rows(result.steps))
     text = json.dumps({"format": "segsnake-fit", "version": 1, "model": model.to_dict(),
-                       "fit": info})
+                       **grid, "fit": info})
 
     def writer(tmp: str) -> None:
         with open(tmp, "w", encoding="utf-8") as fh:

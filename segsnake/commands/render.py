@@ -14,8 +14,9 @@ HELP = "rebuild mask, surface and QC picture of a saved snake (or edited points)
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     parser = subparsers.add_parser("render", help=HELP, description=HELP + ".")
     parser.add_argument("snake", metavar="SNAKE.json|POINTS.mrk.json",
-                        help="a snake.json written by segment or render, or a markups file "
-                             "written by export-points (points may have been moved in Slicer)")
+                        help="a snake.json written by segment or render, a fit of a mask, or "
+                             "a markups file written by export-points (points may have been "
+                             "moved in Slicer)")
     parser.add_argument("--like", required=True, metavar="IMAGE",
                         help="the image whose grid (shape, affine) the outputs are written on")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")

@@ -68,9 +68,10 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                    help="positions and radii are in the image's world millimetres")
     g.add_argument("--init", default=None, metavar="SNAKE.json",
                    help="start from a saved snake instead of a new sphere or cylinder: a "
-                        "snake.json, or a markups file written by export-points (perhaps edited "
-                        "in Slicer); placed by world coordinates, resampled to --m1/--m2 when "
-                        "given; the rough-start stages are skipped")
+                        "snake.json, a fit of a mask (segsnake fit MASK), or a markups file "
+                        "written by export-points (perhaps edited in Slicer); placed by world "
+                        "coordinates, resampled to --m1/--m2 when given; the rough-start stages "
+                        "are skipped")
     m = parser.add_argument_group("model and features")
     m.add_argument("--m1", type=int, default=None, help="control points around (default 9 sphere, 8 cylinder)")
     m.add_argument("--m2", type=int, default=None,
