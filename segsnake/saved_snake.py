@@ -226,6 +226,24 @@ def read_model(path: str, what: str = "file") -> SplineSurface:
         raise InputError(f"{path}: not a readable segsnake model ({msg})") from None
 
 
+def read_prior(path: str, affine: NDArray, spacing) -> SplineSurface:
+    """A ``--prior`` file's reference in an image's scaled index space (mm).
+
+    A file that carries its own image's grid (a ``snake.json``, a fit of a mask) is placed
+    through world coordinates (:func:`load_snake`, :func:`image_from_world`): its shape in
+    millimetres, and its surface traversed as the start placed from the same file is (a grid
+    of the other handedness reverses both alike, so the prior meets its own start point for
+    point). Any other saved model (a ``segsnake shape`` reference, a shape model, whose modes
+    live in its own frame) is taken as it is stored (:func:`read_model`); the prior's shape
+    spaces ignore where it lies.
+    """
+    doc = read_json(path, "prior file")
+    if isinstance(doc, dict) and doc.get("format") in ("segsnake-result", "segsnake-fit") \
+            and "affine" in doc:
+        return image_from_world(load_snake(path), affine, spacing)
+    return read_model(path, "prior file")
+
+
 def load_snake(path: str) -> SplineSurface:
     """A saved snake in world RAS mm, from ``snake.json`` or a markups file of ``export-points``
     (:func:`load_snake_and_record` without the record).
@@ -263,8 +281,8 @@ def load_snake_and_record(path: str) -> tuple[SplineSurface, dict[str, Any] | No
     fmt = doc.get("format") if isinstance(doc, dict) else None
     if fmt == "segsnake-model":
         raise InputError(f"{path}: a segsnake model without an image grid (no affine); give a "
-                         f"snake.json written by segment or render, or a markups file written "
-                         f"by export-points")
+                         f"snake.json written by segment or render, a fit of a mask, or a "
+                         f"markups file written by export-points")
     if fmt == "segsnake-fit" and "affine" not in doc:
         raise InputError(f"{path}: a segsnake fit of a mesh or point cloud, without an image grid "
                          f"(a fit of a mask carries its mask's); give a snake.json written by "
@@ -279,13 +297,15 @@ def load_snake_and_record(path: str) -> tuple[SplineSurface, dict[str, Any] | No
         spacing = np.asarray(doc["spacing_mm"] if fmt == "segsnake-fit"
                              else doc["summary"]["spacing_mm"], dtype=np.float64)
         if affine.shape != (4, 4) or spacing.shape != (3,) or \
-                not (np.all(np.isfinite(affine)) and np.all(spacing > 0)):
+                not (np.all(np.isfinite(affine)) and np.all(np.isfinite(spacing))
+                     and np.all(spacing > 0)):
             raise ValueError("bad affine or spacing_mm")
         if not math.isfinite(float(np.linalg.cond(affine[:3, :3]))):
             raise ValueError("singular affine")
     except (KeyError, TypeError, ValueError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"{path}: not a readable segsnake result ({msg})") from None
+        what = "fit" if fmt == "segsnake-fit" else "result"
+        raise InputError(f"{path}: not a readable segsnake {what} ({msg})") from None
     settings = doc.get("settings")
     record = settings.get("restart") if isinstance(settings, dict) else None
     return world_from_image(model, affine, spacing), (record if isinstance(record, dict) else None)

@@ -44,6 +44,22 @@ def test_distance_within_is_the_exact_distance_up_to_its_bound():
     assert np.all(distance.distance_within(np.ones((5, 6, 7), bool), (1, 2, 3), 3.0) == 0)
 
 
+@pytest.mark.parametrize("shape", [(1, 9, 8), (2, 9, 8), (9, 2, 1), (2, 2, 2), (7, 1, 2)])
+def test_distance_within_on_thin_grids_and_in_any_memory_order(shape):
+    # Axes of one or two voxels (a pass along a one-voxel axis is skipped; along two it is not),
+    # and a mask in Fortran order (the kernel reads C order: it is copied).
+    rng = np.random.default_rng(5)
+    sp = (0.7, 1.1, 2.0)
+    mask = rng.random(shape) < 0.15
+    mask.flat[0] = True
+    ref = ndimage.distance_transform_edt(~mask, sampling=sp)
+    for m in (mask, np.asfortranarray(mask)):
+        got = distance.distance_within(m, sp, 3.0)
+        near = ref <= 3.0
+        assert np.allclose(got[near], ref[near], rtol=1e-6, atol=1e-5)
+        assert np.all(np.isinf(got[~near]))
+
+
 def _shifted_minima(d2, sp):
     # The squared distance's passes as numpy's shifted minima over every offset along each axis
     # (what distance_within computed before its compiled envelope): the reference, to the bit.
@@ -101,3 +117,5 @@ def test_the_compiled_envelope_refuses_what_it_cannot_read():
         envelope(a.astype(np.float64), np.empty_like(a), a.shape, 0, 1.0, 0, 30)
     with pytest.raises(ValueError, match="axis"):
         envelope(a, np.empty_like(a), a.shape, 3, 1.0, 0, 30)
+    with pytest.raises(ValueError, match="too many voxels"):  # (a product that would wrap)
+        envelope(a, np.empty_like(a), (3, 2, 3074457345618258603), 1, 1.0, 0, 1)
