@@ -199,8 +199,56 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
         r = float(lengths([config.radius], "--radius")[0])
         if not config.world:  # lengths() scaled it per axis; a radius goes across the axis
             r = float(config.radius) * perpendicular_spacing(sp, a1 - a0)
+        if image is not None and region_energy(config):
+            # (the region energy's tube follows the cheapest path between the points through
+            # the intensity around them: a bent vessel's start lies in it; docs/design.md)
+            return _traced_tube(image, sp, a0, a1, r, config, region_params)
         return CylinderModel.from_axis(a0, a1, r, m1=config.m1 or 8, m2=config.m2 or 4)
     raise ConfigError(f"unknown shape {config.shape!r} (expected sphere or cylinder)")
+
+
+def _traced_tube(image: NDArray, sp: NDArray, a0: NDArray, a1: NDArray, r: float, config,
+                 region_params=None) -> CylinderModel:
+    """The initial tube between two points for the region energy: along the cheapest path
+    between them (:func:`segsnake.tube_path.traced_centerline`) through the image smoothed as the
+    region energy reads it, in a box around the points (their distance beyond them on every side:
+    the path never needs the whole image, and the cost array stays small), the intensity model
+    read within the radius of either point. The path's points are spaced by
+    ``TRACE_STEP_RADII`` radii (at least two voxels): a ring per point, enough to bend with the
+    tube at the radius the user gave."""
+    from segsnake import region as rg
+    from segsnake.tube_path import traced_centerline
+
+    p = region_params or rg.RegionParams()
+    margin = float(np.linalg.norm(a1 - a0))
+    lo = np.maximum(np.floor((np.minimum(a0, a1) - margin) / sp), 0).astype(int)
+    hi = np.minimum(np.ceil((np.maximum(a0, a1) + margin) / sp) + 1, image.shape).astype(int)
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    image_s = rg.smoothed(image[box], sp, p.smooth_mm)
+    origin = lo * sp
+    # The intensity model: the voxels within the radius of either point, or the nearest
+    # MIN_SAMPLES to them where that holds fewer (as a click's core is read).
+    grid = [np.arange(n) * s for n, s in zip(image_s.shape, sp)]
+    d2 = np.full(image_s.shape, np.inf)
+    for a in (a0 - origin, a1 - origin):
+        d2 = np.minimum(d2, sum((g - c)[tuple(slice(None) if i == k else None for i in range(3))]
+                                ** 2 for k, (g, c) in enumerate(zip(grid, a))))
+    near = d2.ravel() <= r * r
+    if near.sum() < rg.MIN_SAMPLES:
+        near = np.argpartition(d2.ravel(), min(rg.MIN_SAMPLES, d2.size) - 1)[:rg.MIN_SAMPLES]
+    model = rg.IntensityModel.from_samples(image_s.ravel()[near], rg.image_range(image_s),
+                                           p.min_sigma_fraction)
+    step = max(TRACE_STEP_RADII * r, 2.0 * float(sp.max()))
+    pts = traced_centerline(image_s, sp, a0 - origin, a1 - origin, model.mu, model.sigma,
+                            step) + origin
+    return CylinderModel.from_centerline(pts, r, m1=config.m1 or 8,
+                                         m2=config.m2 or max(4, len(pts) - 1))
+
+
+#: Spacing of an end-point tube's traced centreline, in radii of the start (``--radius``): four,
+#: so that the straight start's four intervals between end points 16 radii apart are kept, and a
+#: bend of a few radii gets a ring.
+TRACE_STEP_RADII = 4.0
 
 
 def perpendicular_spacing(spacing: Sequence[float], axis: Sequence[float]) -> float:
