@@ -245,9 +245,11 @@ def _traced_tube(image: NDArray, sp: NDArray, a0: NDArray, a1: NDArray, r: float
                                          m2=config.m2 or max(4, len(pts) - 1))
 
 
-#: Spacing of an end-point tube's traced centreline, in radii of the start (``--radius``): four,
-#: so that the straight start's four intervals between end points 16 radii apart are kept, and a
-#: bend of a few radii gets a ring.
+#: Spacing of an end-point tube's traced centreline, in radii of the start (``--radius``): a ring
+#: every four, so a bend of a few radii gets rings. Measured from the end points of bench_tubes'
+#: arch, S and exiting phantoms: 2 and 4 give the same (0.969-0.993 and 0.968-0.992), at 8 the
+#: thin S vessels and the arch lose their bends (0.36-0.44, no boundary found; docs/benchmarks.md,
+#: session 35).
 TRACE_STEP_RADII = 4.0
 
 
