@@ -241,8 +241,11 @@ def _traced_tube(image: NDArray, sp: NDArray, a0: NDArray, a1: NDArray, r: float
     step = max(TRACE_STEP_RADII * r, 2.0 * float(sp.max()))
     pts = traced_centerline(image_s, sp, a0 - origin, a1 - origin, model.mu, model.sigma,
                             step) + origin
-    return CylinderModel.from_centerline(pts, r, m1=config.m1 or 8,
-                                         m2=config.m2 or max(4, len(pts) - 1))
+    try:
+        return CylinderModel.from_centerline(pts, r, m1=config.m1 or 8,
+                                             m2=config.m2 or max(4, len(pts) - 1))
+    except ValueError:  # (two stations at one point: a path shorter than its steps can hold)
+        return CylinderModel.from_axis(a0, a1, r, m1=config.m1 or 8, m2=config.m2 or 4)
 
 
 #: Spacing of an end-point tube's traced centreline, in radii of the start (``--radius``): a ring
