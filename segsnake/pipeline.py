@@ -18,6 +18,7 @@ with the same options rebuilds that energy and comes back unchanged.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
@@ -211,49 +212,55 @@ def _traced_tube(image: NDArray, sp: NDArray, a0: NDArray, a1: NDArray, r: float
                  region_params=None) -> CylinderModel:
     """The initial tube between two points for the region energy: along the cheapest path
     between them (:func:`segsnake.tube_path.traced_centerline`) through the image smoothed as the
-    region energy reads it, in a box around the points (their distance beyond them on every side:
-    the path never needs the whole image, and the cost array stays small), the intensity model
-    read within the radius of either point. The path's points are spaced by
-    ``TRACE_STEP_RADII`` radii (at least two voxels): a ring per point, enough to bend with the
-    tube at the radius the user gave."""
+    region energy reads it, in a box around the points (their distance beyond them on every
+    side), the intensity model read within the start radius of either point
+    (:func:`segsnake.tube_path.point_samples`). The path's points are ``TRACE_STEP_RADII`` radii
+    apart (at least two voxels, at most ``AXIAL_RINGS_MAX`` intervals): a ring per point.
+
+    Two points whose surroundings are not one tissue (medians more than
+    :data:`segsnake.click.SHELL_SPREADS` pooled spreads apart: one of them off the tube) name no
+    tube to trace: the straight cylinder between them, whose stages say what they find ("no
+    boundary found" where it lies in the background), as does a path too short for its rings."""
     from segsnake import region as rg
-    from segsnake.tube_path import traced_centerline
+    from segsnake.click import SHELL_SPREADS
+    from segsnake.surfaces import AXIAL_RINGS_MAX
+    from segsnake.tube_path import point_samples, traced_centerline
 
     p = region_params or rg.RegionParams()
+    m1 = config.m1 or 8
+
+    def straight() -> CylinderModel:
+        return CylinderModel.from_axis(a0, a1, r, m1=m1, m2=config.m2 or 4)
+
+    span = rg.image_range(image)  # (the whole image's: the spread's floor, as the stages read it)
+    samples = [point_samples(image, sp, a, r, p.smooth_mm, rg.MIN_SAMPLES) for a in (a0, a1)]
+    ends = [rg.IntensityModel.from_samples(x, span, p.min_sigma_fraction) for x in samples]
+    if abs(ends[0].mu - ends[1].mu) > SHELL_SPREADS * math.sqrt(
+            0.5 * (ends[0].sigma ** 2 + ends[1].sigma ** 2)):
+        return straight()
+    model = rg.IntensityModel.from_samples(np.concatenate(samples), span, p.min_sigma_fraction)
     margin = float(np.linalg.norm(a1 - a0))
     lo = np.maximum(np.floor((np.minimum(a0, a1) - margin) / sp), 0).astype(int)
     hi = np.minimum(np.ceil((np.maximum(a0, a1) + margin) / sp) + 1, image.shape).astype(int)
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    image_s = rg.smoothed(image[box], sp, p.smooth_mm)
     origin = lo * sp
-    # The intensity model: the voxels within the radius of either point, or the nearest
-    # MIN_SAMPLES to them where that holds fewer (as a click's core is read).
-    grid = [np.arange(n) * s for n, s in zip(image_s.shape, sp)]
-    d2 = np.full(image_s.shape, np.inf)
-    for a in (a0 - origin, a1 - origin):
-        d2 = np.minimum(d2, sum((g - c)[tuple(slice(None) if i == k else None for i in range(3))]
-                                ** 2 for k, (g, c) in enumerate(zip(grid, a))))
-    near = d2.ravel() <= r * r
-    if near.sum() < rg.MIN_SAMPLES:
-        near = np.argpartition(d2.ravel(), min(rg.MIN_SAMPLES, d2.size) - 1)[:rg.MIN_SAMPLES]
-    model = rg.IntensityModel.from_samples(image_s.ravel()[near], rg.image_range(image_s),
-                                           p.min_sigma_fraction)
+    image_s = rg.smoothed(image[tuple(slice(a, b) for a, b in zip(lo, hi))], sp, p.smooth_mm)
     step = max(TRACE_STEP_RADII * r, 2.0 * float(sp.max()))
-    pts = traced_centerline(image_s, sp, a0 - origin, a1 - origin, model.mu, model.sigma,
-                            step) + origin
+    pts = traced_centerline(image_s, sp, a0 - origin, a1 - origin, model.mu, model.sigma, step,
+                            AXIAL_RINGS_MAX + 1) + origin
+    del image_s
     try:
-        return CylinderModel.from_centerline(pts, r, m1=config.m1 or 8,
-                                             m2=config.m2 or max(4, len(pts) - 1))
+        return CylinderModel.from_centerline(pts, r, m1=m1, m2=config.m2 or max(4, len(pts) - 1))
     except ValueError:  # (two stations at one point: a path shorter than its steps can hold)
-        return CylinderModel.from_axis(a0, a1, r, m1=config.m1 or 8, m2=config.m2 or 4)
+        return straight()
 
 
 #: Spacing of an end-point tube's traced centreline, in radii of the start (``--radius``): a ring
-#: every four, so a bend of a few radii gets rings. Measured from the end points of bench_tubes'
-#: arch, S and exiting phantoms: 2 and 4 give the same (0.969-0.993 and 0.968-0.992), at 8 the
-#: thin S vessels and the arch lose their bends (0.36-0.44, no boundary found; docs/benchmarks.md,
-#: session 35).
-TRACE_STEP_RADII = 4.0
+#: every two, so a bend of a few radii gets rings whether the radius given is the tube's or half
+#: of it. Measured from the end points of bench_tubes' arch, S and exiting phantoms (half their
+#: radius): 2 and 4 give the same (0.969-0.993 and 0.968-0.992), at 8 the thin S vessels and the
+#: arch lose their bends (0.36-0.44, no boundary found); at the true radius 4 lost them too (S3
+#: 0.56-0.67, the arch 0.71; 2: 0.96-0.995). docs/benchmarks.md, session 35.
+TRACE_STEP_RADII = 2.0
 
 
 def perpendicular_spacing(spacing: Sequence[float], axis: Sequence[float]) -> float:
