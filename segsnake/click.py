@@ -50,6 +50,21 @@ SPREAD_GROWTH = 1.5
 SHELL_SPREADS = 2.0
 
 
+def smoothed_around(image: NDArray, spacing: Sequence[float], point_mm: Sequence[float],
+                    pad_mm: float, smooth_mm: float) -> tuple[NDArray, NDArray]:
+    """The image smoothed at ``smooth_mm`` in the block of voxels within ``pad_mm`` of a point
+    (mm of scaled index space) along each axis, and each of its voxels' squared distance from the
+    point (mm^2): what is read about a click without smoothing the whole image."""
+    sp = np.asarray(spacing, dtype=np.float64)
+    c = np.asarray(point_mm, dtype=np.float64)
+    shape = np.asarray(image.shape)
+    lo = np.clip(np.floor((c - pad_mm) / sp).astype(int), 0, shape - 1)
+    hi = np.clip(np.ceil((c + pad_mm) / sp).astype(int) + 1, 1, shape)
+    block = smoothed(image[tuple(slice(a, b) for a, b in zip(lo, hi))], sp, smooth_mm)
+    axes = [(np.arange(a, b) * s - x) ** 2 for a, b, s, x in zip(lo, hi, sp, c)]
+    return block, axes[0][:, None, None] + axes[1][None, :, None] + axes[2][None, None, :]
+
+
 def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[float], *,
                  spread_growth: float = SPREAD_GROWTH, shell_spreads: float = SHELL_SPREADS,
                  smooth_mm: float = RegionParams.smooth_mm,
@@ -93,12 +108,8 @@ def click_radius(image: NDArray, spacing: Sequence[float], center_mm: Sequence[f
     def around(reach: float) -> tuple[NDArray, NDArray]:
         # The smoothed intensities within ``reach`` of the click, nearest first (a ball is a
         # prefix), from a block that holds them and the Gaussian's support (4 widths).
-        pad = reach + 4 * smooth_mm
-        lo = np.clip(np.floor((c - pad) / sp).astype(int), 0, shape - 1)
-        hi = np.clip(np.ceil((c + pad) / sp).astype(int) + 1, 1, shape)
-        block = smoothed(image[tuple(slice(a, b) for a, b in zip(lo, hi))], sp, smooth_mm)
-        axes = [(np.arange(a, b) * s - x) ** 2 for a, b, s, x in zip(lo, hi, sp, c)]
-        dist = np.sqrt(axes[0][:, None, None] + axes[1][None, :, None] + axes[2][None, None, :])
+        block, d2 = smoothed_around(image, sp, c, reach + 4 * smooth_mm, smooth_mm)
+        dist = np.sqrt(d2)
         near = dist <= reach
         dist, block = dist[near], block[near]
         order = np.argsort(dist, kind="stable")

@@ -203,13 +203,15 @@ def initial_model(config, spacing: Sequence[float], shape: Sequence[int],
         if image is not None and region_energy(config):
             # (the region energy's tube follows the cheapest path between the points through
             # the intensity around them: a bent vessel's start lies in it; docs/design.md)
-            return _traced_tube(image, sp, a0, a1, r, config, region_params)
+            traced = _traced_tube(image, sp, a0, a1, r, config, region_params)
+            if traced is not None:
+                return traced
         return CylinderModel.from_axis(a0, a1, r, m1=config.m1 or 8, m2=config.m2 or 4)
     raise ConfigError(f"unknown shape {config.shape!r} (expected sphere or cylinder)")
 
 
 def _traced_tube(image: NDArray, sp: NDArray, a0: NDArray, a1: NDArray, r: float, config,
-                 region_params=None) -> CylinderModel:
+                 region_params=None) -> CylinderModel | None:
     """The initial tube between two points for the region energy: along the cheapest path
     between them (:func:`segsnake.tube_path.traced_centerline`) through the image smoothed as the
     region energy reads it, in a box around the points (their distance beyond them on every
@@ -219,25 +221,21 @@ def _traced_tube(image: NDArray, sp: NDArray, a0: NDArray, a1: NDArray, r: float
 
     Two points whose surroundings are not one tissue (medians more than
     :data:`segsnake.click.SHELL_SPREADS` pooled spreads apart: one of them off the tube) name no
-    tube to trace: the straight cylinder between them, whose stages say what they find ("no
-    boundary found" where it lies in the background), as does a path too short for its rings."""
+    tube to trace, nor does a path too short for its rings: None, and the start is the straight
+    cylinder between them, whose stages say what they find ("no boundary found" where it lies
+    in the background)."""
     from segsnake import region as rg
     from segsnake.click import SHELL_SPREADS
     from segsnake.surfaces import AXIAL_RINGS_MAX
     from segsnake.tube_path import point_samples, traced_centerline
 
     p = region_params or rg.RegionParams()
-    m1 = config.m1 or 8
-
-    def straight() -> CylinderModel:
-        return CylinderModel.from_axis(a0, a1, r, m1=m1, m2=config.m2 or 4)
-
     span = rg.image_range(image)  # (the whole image's: the spread's floor, as the stages read it)
     samples = [point_samples(image, sp, a, r, p.smooth_mm, rg.MIN_SAMPLES) for a in (a0, a1)]
     ends = [rg.IntensityModel.from_samples(x, span, p.min_sigma_fraction) for x in samples]
     if abs(ends[0].mu - ends[1].mu) > SHELL_SPREADS * math.sqrt(
             0.5 * (ends[0].sigma ** 2 + ends[1].sigma ** 2)):
-        return straight()
+        return None
     model = rg.IntensityModel.from_samples(np.concatenate(samples), span, p.min_sigma_fraction)
     margin = float(np.linalg.norm(a1 - a0))
     lo = np.maximum(np.floor((np.minimum(a0, a1) - margin) / sp), 0).astype(int)
@@ -249,9 +247,10 @@ def _traced_tube(image: NDArray, sp: NDArray, a0: NDArray, a1: NDArray, r: float
                             AXIAL_RINGS_MAX + 1) + origin
     del image_s
     try:
-        return CylinderModel.from_centerline(pts, r, m1=m1, m2=config.m2 or max(4, len(pts) - 1))
+        return CylinderModel.from_centerline(pts, r, m1=config.m1 or 8,
+                                             m2=config.m2 or max(4, len(pts) - 1))
     except ValueError:  # (two stations at one point: a path shorter than its steps can hold)
-        return straight()
+        return None
 
 
 #: Spacing of an end-point tube's traced centreline, in radii of the start (``--radius``): a ring

@@ -240,7 +240,7 @@ def read_prior(path: str, affine: NDArray, spacing) -> SplineSurface:
     doc = read_json(path, "prior file")
     if isinstance(doc, dict) and doc.get("format") in ("segsnake-result", "segsnake-fit") \
             and "affine" in doc:
-        return image_from_world(load_snake(path), affine, spacing)
+        return image_from_world(_snake_from_doc(doc, path)[0], affine, spacing)
     return read_model(path, "prior file")
 
 
@@ -275,7 +275,11 @@ def load_snake_and_record(path: str) -> tuple[SplineSurface, dict[str, Any] | No
     """:func:`load_snake`, and from the same reading of the file its ``restart`` record: what
     defines the energy its last stage ended in (:func:`segsnake.region_stages.segment_region`), or
     None for a markups file, a fit, a ``render`` output or a result without one."""
-    doc = read_json(path, "snake file")
+    return _snake_from_doc(read_json(path, "snake file"), path)
+
+
+def _snake_from_doc(doc: Any, path: str) -> tuple[SplineSurface, dict[str, Any] | None]:
+    """:func:`load_snake_and_record` of the document already read from ``path``."""
     if isinstance(doc, dict) and "markups" in doc:
         return _model_from_markups(doc, path), None
     fmt = doc.get("format") if isinstance(doc, dict) else None

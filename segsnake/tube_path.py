@@ -37,18 +37,13 @@ def point_samples(image: NDArray, spacing: Sequence[float], point_mm: NDArray, r
     leave all of them as the point moved by 1e-12. So the squared distances are compared, and
     ranked (ties by voxel order), after rounding to 1e-6 of the finest voxel's squared size.
     """
-    from segsnake.region import smoothed
+    from segsnake.click import smoothed_around
 
     sp = np.asarray(spacing, dtype=np.float64)
-    p = np.asarray(point_mm, dtype=np.float64)
-    # (a box around the point that holds the ball and the nearest ``least`` voxels, and the
+    # (a block around the point that holds the ball and the nearest ``least`` voxels, and the
     # smoothing's reach)
-    half = max(radius_mm, 3.0 * float(sp.max())) + 3.0 * smooth_mm
-    lo = np.maximum(np.floor((p - half) / sp), 0).astype(int)
-    hi = np.minimum(np.ceil((p + half) / sp) + 1, image.shape).astype(int)
-    sub = smoothed(image[tuple(slice(a, b) for a, b in zip(lo, hi))], sp, smooth_mm)
-    axes = [(np.arange(a, b) * s - c) ** 2 for a, b, s, c in zip(lo, hi, sp, p)]
-    d2 = axes[0][:, None, None] + axes[1][None, :, None] + axes[2][None, None, :]
+    sub, d2 = smoothed_around(image, sp, point_mm,
+                              max(radius_mm, 3.0 * float(sp.max())) + 3.0 * smooth_mm, smooth_mm)
     quantum = 1e-6 * float(sp.min()) ** 2
     dq = np.rint(d2.ravel() / quantum)
     inside = dq <= np.rint(radius_mm * radius_mm / quantum)
