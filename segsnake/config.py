@@ -40,6 +40,18 @@ __all__ = [
 SHAPES = ("sphere", "cylinder")
 FEATURES = ("edge", "surface")
 PRIOR_SPACES = ("affine", "linear", "similarity", "rigid", "scaling", "translation")
+#: The prior's weight and the transformations it ignores unless ``prior_weight`` and
+#: ``prior_space`` are given (:meth:`SegmentConfig.prior_used`). A prior file: weight 1, any
+#: affine pose (the user's own reference, perhaps of another subject). An atlas' structure,
+#: already placed by an affine registration: any pose and size but its own proportions, and a
+#: weight in the flat part of the tuning case's sweep (the left thalamus: 0.783 at weight 1,
+#: 0.804-0.809 from 2 to 20; similarity against affine and rigid 0.813 / 0.619 / 0.783;
+#: docs/benchmarks.md, session 36): where a nucleus meets a neighbour of its intensity the atlas
+#: is the only thing that says where it ends.
+PRIOR_WEIGHT_FILE = 1.0
+PRIOR_SPACE_FILE = "affine"
+PRIOR_WEIGHT_ATLAS = 5.0
+PRIOR_SPACE_ATLAS = "similarity"
 NAN_POLICIES = ("refuse", "fill")
 POLARITIES = ("auto", "bright", "dark", "none")
 ENERGIES = ("auto", "region", "edge")
@@ -301,6 +313,14 @@ def _path(v: Any) -> str:
     return v
 
 
+def _text(v: Any) -> str:
+    if isinstance(v, int) and not isinstance(v, bool):  # (a label's value, unquoted in YAML)
+        v = str(v)
+    if not isinstance(v, str) or not v.strip():
+        raise ValueError(f"must be a name, got {_describe(v)}")
+    return v.strip()
+
+
 def _mesh_name(v: Any) -> str:
     from segsnake.meshes import MESH_SUFFIXES, mesh_suffix
 
@@ -368,8 +388,8 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "tol": lambda v: _float(v, low=0.0, strict_low=True),
     "coarse_to_fine": _bool,
     "prior": _optional(_path),
-    "prior_weight": lambda v: _float(v, low=0.0),
-    "prior_space": _choice(PRIOR_SPACES),
+    "prior_weight": _optional(lambda v: _float(v, low=0.0)),
+    "prior_space": _optional(_choice(PRIOR_SPACES)),
     "prior_modes": lambda v: _int(v, low=0),
     "volume": _optional(lambda v: _int(v, low=0)),
     "nan": _choice(NAN_POLICIES),
@@ -377,12 +397,14 @@ _VALIDATORS: dict[str, Callable[[Any], Any]] = {
     "energy": _choice(ENERGIES),
     "mesh": _optional(_mesh_name),
     "init": _optional(_path),
+    "atlas": _optional(_path),
+    "structure": _optional(_text),
 }
 
 # Options that are positions: three numbers, or a 3D Slicer markups file (segsnake.markups).
 POSITION_KEYS = ("center", "seed_point", "axis_start", "axis_end")
 # Options whose value is (or may be) a file path: relative paths in a YAML file are relative to it.
-PATH_KEYS = ("prior", "init", "centerline") + POSITION_KEYS
+PATH_KEYS = ("prior", "init", "centerline", "atlas") + POSITION_KEYS
 # The options that describe a new initial shape, which a start from a saved snake (init) replaces.
 SHAPE_KEYS = ("center", "radii", "axis_start", "axis_end", "radius", "centerline")
 # A cylinder's axis or centerline given without a shape implies it (its radius alone does not:
@@ -426,8 +448,8 @@ class SegmentConfig:
     tol: float = 1e-6
     coarse_to_fine: bool = True  # region energy: finer grids after the rounds (pipeline)
     prior: str | None = None
-    prior_weight: float = 1.0  # used only with a prior; 0 switches it off
-    prior_space: str = "affine"
+    prior_weight: float | None = None  # None: by the prior's kind (prior_used); 0: off
+    prior_space: str | None = None  # None: by the prior's kind (prior_used)
     prior_modes: int = 0  # modes of a shape-model prior (MODEL.json) used by the prior
     volume: int | None = None
     nan: str = "refuse"
@@ -437,6 +459,10 @@ class SegmentConfig:
     # A saved snake to start from (snake.json, or a markups file of export-points): replaces the
     # new sphere or cylinder and the stages that bring a rough start onto the boundary.
     init: str | None = None
+    # An atlas folder (segsnake.atlas): the image registered to its template, its structure
+    # (``structure``, or the label under ``center``) fitted, as the start and the shape prior.
+    atlas: str | None = None
+    structure: str | None = None
 
     # -- construction -------------------------------------------------------------------------
 
@@ -513,6 +539,26 @@ class SegmentConfig:
                 verb = "describes" if len(given) == 1 else "describe"
                 return "init", (f"init starts from a saved snake; {', '.join(given)} {verb} a "
                                 f"new initial shape: give one or the other")
+        if self.structure is not None and self.atlas is None:
+            return "structure", "structure names a structure of an atlas: give the atlas too"
+        if self.atlas is not None:
+            if self.structure is not None and self.center is not None:
+                return "structure", ("structure names the atlas' structure and center clicks in "
+                                     "it: give one or the other")
+            if (self.m1 is None) != (self.m2 is None):
+                return "atlas", "atlas fits its structure at m1 x m2: give both or neither"
+            if self.prior_modes:
+                return "prior_modes", ("prior_modes needs a shape model (prior); the atlas' "
+                                       "structure has no modes")
+            given = [k for k in ("init", "prior", "radii", "axis_start", "axis_end", "radius",
+                                 "centerline") if getattr(self, k) is not None]
+            if self.shape != "sphere":
+                given.insert(0, f"shape {self.shape}")
+            if given:
+                verb = "gives" if len(given) == 1 else "give"
+                return "atlas", (f"atlas starts from the atlas' structure, which is also its "
+                                 f"prior; {', '.join(given)} {verb} another start or prior: give "
+                                 f"one or the other")
         if self.centerline is not None:
             if self.shape != "cylinder":
                 return "shape", (f"centerline initializes a cylinder; shape {self.shape} does not "
@@ -527,6 +573,14 @@ class SegmentConfig:
             if length == 0.0:
                 return "axis_end", "axis_start and axis_end coincide: the cylinder axis has zero length"
         return None
+
+    def prior_used(self) -> tuple[float, str]:
+        """The prior's weight and space: as given, else those of its kind (an atlas' structure
+        or a prior file: :data:`PRIOR_WEIGHT_ATLAS` and the others)."""
+        atlas = self.atlas is not None
+        weight = self.prior_weight if self.prior_weight is not None else \
+            PRIOR_WEIGHT_ATLAS if atlas else PRIOR_WEIGHT_FILE
+        return weight, self.prior_space or (PRIOR_SPACE_ATLAS if atlas else PRIOR_SPACE_FILE)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain, JSON- and YAML-serialisable dict of every option (lists copied)."""

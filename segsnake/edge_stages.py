@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from segsnake.distance import distance_to
-from segsnake.errors import SegmentationError
+from segsnake.errors import NoBoundaryError, SegmentationError
 from segsnake.parallel import gaussian_filter, pieces, thread_map
 from segsnake.pipeline import SegmentResult
 from segsnake.stage import REGULARIZATION, Run
@@ -248,7 +248,7 @@ def segment_edges(image, sp, config, model, progress, extra_energy, init_s,
         polarity = f"inner face of a {config.polarity} sheet"
 
     if support < MIN_EDGE_SUPPORT:
-        raise SegmentationError(
+        raise NoBoundaryError(
             f"no boundary found: the final surface lies on almost no detected edge (mean edge "
             f"strength {support:.2f}, expected about 1); check the initialization or --scale")
     t0 = time.perf_counter()

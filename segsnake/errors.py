@@ -101,6 +101,10 @@ class SegmentationError(SegsnakeError):
     exit_code = 4
 
 
+class NoBoundaryError(SegmentationError):
+    """The image holds no boundary where the surface is: its inside and outside do not differ."""
+
+
 class OutputError(SegsnakeError):
     """An output cannot be written (exists without --overwrite, read-only, disk full)."""
 

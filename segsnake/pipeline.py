@@ -381,7 +381,8 @@ def restart_options(image: NDArray, spacing, config, params) -> dict[str, Any]:
                "energy": config.energy, "feature": config.feature, "scale": config.scale,
                "threshold": config.threshold, "seed_point": config.seed_point,
                "polarity": config.polarity, "tol": config.tol, "max_iter": config.max_iter,
-               "prior": config.prior, "prior_weight": config.prior_weight,
+               "prior": config.prior, "prior_weight": config.prior_used()[0],
+               "atlas": config.atlas, "structure": config.structure,
                "region_params": {k: v for k, v in dataclasses.asdict(params).items()
                                  if k not in JUDGING_FIELDS | PASS_FIELDS}}
     return json.loads(json.dumps(options))

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from segsnake.departure import departure
 from segsnake.distance import distance_within
 from segsnake.energy import FluxTerm
-from segsnake.errors import SegmentationError
+from segsnake.errors import NoBoundaryError, SegmentationError
 from segsnake.pipeline import SegmentResult, restart_options, usable_restart
 from segsnake.resample import interpolate_tube
 from segsnake.stage import FOV_DENSITY, FOV_PAD, MAX_ORDER, REGULARIZATION, Run
@@ -313,7 +313,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
             elif not on_boundary and model.kind == "cylinder" and config.centerline is None:
                 # (a straight cylinder between two points of a bent tube lies mostly outside it)
                 hint = " or give points along the tube (--centerline) if it bends"
-            raise SegmentationError(
+            raise NoBoundaryError(
                 f"no boundary found: inside and outside the surface differ by {contrast:.3g}, "
                 f"{contrast / intensity.sigma:.2f} x the click's spread; check the "
                 f"initialization{hint}")

@@ -28,7 +28,9 @@ import numpy as np
 
 from segsnake import __version__, outdir
 from segsnake.allocator import trim
-from segsnake.errors import ConfigError, InputError, OutputError, SegmentationError
+from segsnake.config import PRIOR_SPACE_FILE, PRIOR_WEIGHT_FILE
+from segsnake.errors import ConfigError, InputError, NoBoundaryError, OutputError, \
+    SegmentationError
 from segsnake.centerline_files import read_centerline, resolve_centerline
 from segsnake.markups import resolve_markups
 from segsnake.meshes import write_mesh, write_surface
@@ -287,10 +289,21 @@ def segment_file(image_path: str, out_dir: str, config, *, truth_path: str | Non
     truth_path = None if truth_path is None else os.fspath(truth_path)
     names = output_names(config)
     _check_out_dir(out_dir, overwrite, _inputs(image_path, truth_path, config), names)
+    if config.atlas is not None and os.path.isdir(config.atlas) and \
+            _within(os.path.abspath(out_dir), os.path.realpath(config.atlas)):
+        # (its mask.nii.gz would become a label set without names, and the atlas unreadable)
+        raise OutputError(f"{out_dir}: --out lies in the atlas folder {config.atlas}; give "
+                          f"another directory")
     with outdir.locked(out_dir, wait=wait):
         _check_existing(out_dir, overwrite, names)  # again: a run that held the lock wrote them?
         return _segment_locked(image_path, out_dir, config, truth_path, truth_label,
                                truth_label_option, overwrite, progress, names, t_start)
+
+
+def _within(path: str, folder: str) -> bool:
+    """Is ``path`` (absolute) ``folder`` or inside it, links resolved?"""
+    path = os.path.realpath(path)
+    return path == folder or path.startswith(folder.rstrip(os.sep) + os.sep)
 
 
 def _inputs(image_path, truth_path, config) -> list[str | None]:
@@ -307,9 +320,10 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     from segsnake.pipeline import segment_volume
 
     t0 = time.perf_counter()
-    # A bad --init or --centerline file is refused before the image is read.
+    # A bad --init, --centerline or --atlas is refused before the image is read.
     saved, saved_record = load_snake_and_record(config.init) if config.init is not None \
         else (None, None)
+    atlas = _read_atlas(config)
     if saved is not None and saved.kind == "cylinder":
         names = _add_profile(out_dir, overwrite, names, _inputs(image_path, truth_path, config))
     centerline_file = config.centerline if isinstance(config.centerline, str) else None
@@ -332,15 +346,34 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         init_record = saved_record
 
     extra = None
-    if config.prior is not None and config.prior_weight > 0:
+    atlas_record = None
+    atlas_s = None
+    weight, space = config.prior_used()
+    if atlas is not None:
+        t0 = time.perf_counter()
+        init_model, atlas_record = _atlas_start(config, volume, atlas)
+        atlas_s = time.perf_counter() - t0
+        config = config.replace(m1=init_model.m1, m2=init_model.m2)
+        if weight > 0:  # (the atlas' shape is the prior too)
+            extra = _prior_energy(config, init_model, source=f"{config.atlas} (atlas)",
+                                  weight=weight, space=space)
+    if config.prior is not None and weight > 0:
         reference = read_prior(config.prior, volume.affine, volume.spacing)
-        extra = _prior_energy(config, reference)
+        extra = _prior_energy(config, reference, weight=weight, space=space)
         config = _sized_like_prior(config, reference)
     try:
         result = segment_volume(volume.data, volume.spacing, config,
                                 index_from_world=volume.world_to_index, progress=progress,
                                 extra_energy=extra, init_model=init_model,
                                 init_record=init_record)
+    except NoBoundaryError as exc:
+        if atlas_record is None:
+            _with_image_name(exc, image_path)
+            raise
+        # The image does not separate the atlas' structure from its surroundings (a nucleus
+        # between a darker and a brighter neighbour): the registered atlas shape is the result,
+        # and says so.
+        result = _unrefined(init_model, volume, exc)
     except (ConfigError, SegmentationError) as exc:
         _with_image_name(exc, image_path)
         raise
@@ -354,7 +387,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
                          f"{fmt_bytes(need)}, {source or 'the limit'} {fmt_bytes(limit)}); "
                          f"crop the image to the structure or resample it to larger voxels "
                          f"first") from None
-    timings = {"load_s": load_s, **result.timings}
+    timings = {"load_s": load_s, **({"atlas_s": atlas_s} if atlas_s is not None else {}),
+               **result.timings}
     summary: dict[str, Any] = {
         "image": os.path.abspath(image_path),
         "shape": list(volume.shape),
@@ -365,7 +399,8 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         "energy": result.energy,
         "iterations": result.iterations,
         "polarity": result.polarity,
-        "warnings": list(volume.warnings) + truth_warnings + result_warnings(result),
+        "warnings": list(volume.warnings) + truth_warnings + _atlas_warnings(atlas_record)
+        + result_warnings(result),
     }
     quality = {k: result.settings[k] for k in ("separation", "class_separation",
                                                 "boundary_fraction", "step_beyond",
@@ -384,6 +419,10 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
     if profile is not None:
         summary["profile"] = _profile_summary(profile)
     settings = {**config.to_dict(), **result.settings}
+    if extra is not None:  # (the prior's weight and space as used, given or by its kind)
+        settings["prior_weight"], settings["prior_space"] = weight, space
+    if atlas_record is not None:
+        settings["atlas_start"] = atlas_record
     if centerline_file is not None:
         settings["centerline_file"] = os.path.abspath(centerline_file)
     snake = {
@@ -560,6 +599,8 @@ def result_warnings(result) -> list[str]:
         value, bound = result.settings.get(key), params.get(param)
         if value is not None and bound is not None and side * (value - bound) > 0:
             out.append(text.format(**params, value=value, bound=bound))
+    if "unrefined" in result.settings:
+        out.append(result.settings["unrefined"])
     return out
 
 
@@ -593,7 +634,74 @@ def _sized_like_prior(config, reference):
     return config.replace(m1=reference.m1, m2=reference.m2)
 
 
-def _prior_energy(config, reference=None):
+def _read_atlas(config):
+    """``--atlas``'s folder, read (:func:`segsnake.atlas.read_atlas`) and its ``--structure``
+    checked, or None without one."""
+    if config.atlas is None:
+        return None
+    from segsnake.atlas import find_structure, read_atlas
+
+    atlas = read_atlas(config.atlas)
+    if config.structure is not None:
+        find_structure(atlas, config.structure)
+    return atlas
+
+
+def _atlas_start(config, volume, atlas):
+    """``--atlas``: the atlas' structure on the image, fitted (:func:`segsnake.atlas.atlas_start`),
+    as the initial model (mm of the image's scaled index space), and its record."""
+    from segsnake.atlas import atlas_start
+    from segsnake.registration import RegistrationError, grid_problem
+
+    problem = grid_problem(volume.affine)
+    if problem is not None:
+        raise InputError(f"{volume.path}: {problem}")
+    click = None
+    if config.center is not None:
+        click = np.asarray(config.center, dtype=np.float64)
+        if not config.world:
+            click = volume.index_to_world(click)
+    try:
+        return atlas_start(volume.data, volume.affine, volume.spacing, atlas, config.structure,
+                           click, m1=config.m1, m2=config.m2)
+    except RegistrationError as exc:
+        raise SegmentationError(f"{volume.path}: no map to the atlas' template "
+                                f"({config.atlas}): {exc}") from None
+
+
+#: The share of an atlas structure's voxels outside its largest piece from which a run warns
+#: that the snake (one closed surface) left them out: below it they move a Dice by less than
+#: 0.01 (the stray voxels a trilinear placement leaves at a thin part, as the Colin27 right
+#: thalamus' two voxels, 0.01 %).
+PIECES_WARNING_FRACTION = 0.01
+
+
+def _atlas_warnings(record) -> list[str]:
+    """What the atlas start says may be wrong: a structure that landed in several pieces, of
+    which the snake (one closed surface) took the largest."""
+    if record is None or record["dropped_fraction"] < PIECES_WARNING_FRACTION:
+        return []
+    return [f"the atlas' {record['structure']} lands on the image in {record['pieces']} pieces; "
+            f"the snake, one closed surface, follows the largest ({record['dropped_fraction']:.0%} "
+            f"of its voxels lie in the others): name one structure if it holds several"]
+
+
+def _unrefined(model, volume, reason: Exception):
+    """The atlas' structure as registered, as a result: what ``--atlas`` returns where the image
+    holds no boundary for the segmentation to refine it on (:class:`NoBoundaryError`)."""
+    from segsnake.pipeline import SegmentResult
+    from segsnake.rasterize import rasterize
+
+    why = str(reason).split(";")[0]
+    warning = (f"the image does not separate the atlas' structure from its surroundings ({why}): "
+               f"the result is the atlas' structure as registered, not refined on the image; "
+               f"check it")
+    # (no energy was minimized: None, which JSON writes as null)
+    return SegmentResult(model, rasterize(model, volume.shape, volume.spacing), None, 0,
+                         [], {}, "none", model, {"unrefined": warning})
+
+
+def _prior_energy(config, reference=None, source=None, weight=None, space=None):
     """The ``--prior`` energy for :func:`segment_volume`'s ``extra_energy`` (a factory per stage).
 
     REF is any saved model: ``segsnake shape`` output, a previous ``snake.json`` or a
@@ -602,11 +710,17 @@ def _prior_energy(config, reference=None):
     reference's shape space of 10 % of the snake's radius costs ``--prior-weight`` times the
     image energy. ``reference``: the prior file's model in the image's scaled index space, as
     the run reads it (:func:`segsnake.saved_snake.read_prior`); without it, the file's model as
-    stored (:func:`segsnake.saved_snake.read_model`).
+    stored (:func:`segsnake.saved_snake.read_model`). ``source``: the prior's name in messages
+    (default the prior file); ``weight``, ``space``: the prior's weight and space (default
+    ``config.prior_weight``, ``config.prior_space``, else a prior file's,
+    :data:`segsnake.config.PRIOR_WEIGHT_FILE` and :data:`~segsnake.config.PRIOR_SPACE_FILE`).
     """
     from segsnake.priors import relative_prior_weight
 
-    path = config.prior
+    path = source or config.prior
+    space = space or config.prior_space or PRIOR_SPACE_FILE
+    if weight is None:
+        weight = PRIOR_WEIGHT_FILE if config.prior_weight is None else config.prior_weight
     if reference is None:
         reference = read_model(path, "prior file")
 
@@ -638,7 +752,7 @@ def _prior_energy(config, reference=None):
     try:  # options that contradict the prior file: refused before any image work
         from segsnake.model_prior import build_prior
 
-        build_prior(reference, reference, 1.0, config.prior_space, shape_model, config.prior_modes)
+        build_prior(reference, reference, 1.0, space, shape_model, config.prior_modes)
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
 
@@ -648,8 +762,8 @@ def _prior_energy(config, reference=None):
         if (reference.kind, reference.m1, reference.m2) != (model.kind, model.m1, model.m2):
             raise mismatch(model.kind, model.m1, model.m2)
         try:
-            return build_prior(model, reference, relative_prior_weight(model, config.prior_weight),
-                               config.prior_space, shape_model, config.prior_modes)
+            return build_prior(model, reference, relative_prior_weight(model, weight),
+                               space, shape_model, config.prior_modes)
         except ValueError as exc:
             raise InputError(f"{path}: {exc}") from None
 

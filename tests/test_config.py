@@ -38,14 +38,19 @@ def test_defaults_are_the_documented_ones():
     c = SegmentConfig()
     assert (c.shape, c.feature, c.threshold, c.max_iter, c.tol) == ("sphere", "edge", "auto", 300, 1e-6)
     assert (c.coarse_to_fine, c.prior_weight, c.prior_space, c.nan, c.polarity, c.world) == (
-        True, 1.0, "affine", "refuse", "auto", False)
+        True, None, None, "refuse", "auto", False)  # (the prior's: by its kind)
+    assert c.prior_used() == (1.0, "affine")
+    assert c.replace(atlas="atlas").prior_used() == (5.0, "similarity")
+    assert c.replace(atlas="atlas", prior_weight=2, prior_space="rigid").prior_used() == \
+        (2.0, "rigid")
     assert c.m1 is c.m2 is c.scale is c.center is c.volume is None
     assert c.mesh is None  # no extra surface file unless asked
     assert c.energy == "auto"  # pipeline.region_energy decides
     assert c.init is None  # a new initial shape unless a saved snake is given
     assert c.prior_modes == 0  # a shape-model prior uses no modes unless asked
     assert c.centerline is None  # a cylinder from its axis end points unless a centerline
-    assert len(SegmentConfig.keys()) == 27
+    assert c.atlas is c.structure is None  # no atlas start unless a folder is given
+    assert len(SegmentConfig.keys()) == 29
 
 
 def test_to_dict_round_trip_and_normalisation():

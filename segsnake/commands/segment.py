@@ -72,6 +72,15 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
                         "written by export-points (perhaps edited in Slicer); placed by world "
                         "coordinates, resampled to --m1/--m2 when given; the rough-start stages "
                         "are skipped")
+    g.add_argument("--atlas", default=None, metavar="DIR",
+                   help="start from an atlas' structure: the image is registered (affine) to "
+                        "the atlas' DIR/template.nii.gz, the structure carried onto it and "
+                        "fitted; the fit is the start and the shape prior (--prior-weight, "
+                        "--prior-space). DIR holds label images NAME.nii.gz with NAME.csv "
+                        "(value,name). benchmarks/atlas_start.py builds one from PyPI packages")
+    g.add_argument("--structure", default=None, metavar="NAME",
+                   help="with --atlas: the structure, as SET:LABEL, LABEL (a name or value) or "
+                        "SET (all its labels as one object); default the label under --center")
     m = parser.add_argument_group("model and features")
     m.add_argument("--m1", type=int, default=None, help="control points around (default 9 sphere, 8 cylinder)")
     m.add_argument("--m2", type=int, default=None,
@@ -116,10 +125,12 @@ def add_segment_options(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--prior-weight", type=float, default=None, metavar="W",
                    help="prior strength relative to the image energy: an RMS deviation from the "
                         "reference's shape space of 10%% of the snake's radius costs W times the "
-                        "image energy (1 strong, 0.1 mild; default 1 when --prior is given, 0 = off)")
+                        "image energy (1 strong, 0.1 mild; default 1 with --prior, 5 with "
+                        "--atlas, 0 = off)")
     p.add_argument("--prior-space", choices=PRIOR_SPACES, default=None,
-                   help="transformations the prior ignores: affine (default), linear, similarity "
-                        "(rotation, scaling, translation), rigid (rotation, translation), scaling "
+                   help="transformations the prior ignores: affine (the default with "
+                        "--prior), linear, similarity (rotation, scaling, translation; the "
+                        "default with --atlas), rigid (rotation, translation), scaling "
                         "(scaling, translation), translation")
     p.add_argument("--prior-modes", type=int, default=None, metavar="K",
                    help="with a shape-model prior (segsnake shape-model MODEL.json): also allow its "
@@ -155,7 +166,7 @@ OPTION_KEYS = ("shape", "center", "radii", "axis_start", "axis_end", "radius", "
                "world", "m1", "m2",
                "scale", "feature", "polarity", "energy", "coarse_to_fine", "threshold",
                "seed_point", "max_iter", "volume", "nan", "prior", "prior_weight", "prior_space",
-               "prior_modes", "mesh", "init")
+               "prior_modes", "mesh", "init", "atlas", "structure")
 
 
 def config_from_args(args: argparse.Namespace):
