@@ -294,6 +294,28 @@ def test_the_thalamus_that_ran_down_the_brainstem_is_warned_about_and_the_tumour
         assert (depth > 0.8) if found else (depth < 0.4)
 
 
+@pytest.mark.real
+@pytest.mark.slow
+def test_the_atlas_names_the_thalamus_under_the_click_and_finds_it(tmp_path, capsys):
+    """``segment --atlas`` from the benchmark's click on the right thalamus: the label under the
+    click is aseg's right thalamus, and the result scores 0.801 (0.170 from the click alone;
+    docs/benchmarks.md, session 36). Needs ``benchmarks/atlas_start.py``'s atlas folder."""
+    from segsnake.cli import main
+
+    case = _case("colin27-thalamus-r")
+    folder = os.path.join(fetch.cache_dir(), "atlas_dir")
+    if not os.path.isfile(os.path.join(folder, "template.nii.gz")):
+        pytest.skip(f"the atlas folder is not cached in {folder} (benchmarks/atlas_start.py)")
+    rc = main(["segment", case["image"], "--out", str(tmp_path / "seg"), "--atlas", folder,
+               "--center", *map(str, case["init"]["center"]), "--truth", case["truth"],
+               "--json", "--quiet"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0
+    saved = json.loads((tmp_path / "seg" / "snake.json").read_text())
+    assert saved["settings"]["atlas_start"]["structure"] == "aseg:thalamus-rh"
+    assert out["dice"] > 0.78, out["dice"]
+
+
 # ------------------------------------------------------------------------------------------
 # The benchmark's measuring and reporting
 # ------------------------------------------------------------------------------------------
