@@ -49,6 +49,9 @@ class RegistrationParams:
         Fraction of the template's masked voxels the metric reads at each level (random, seeded).
     iterations : int
         Most optimizer steps per level and stage.
+    search_mm : float
+        How far (mm) the head's starts are moved along each axis from the two centred ones
+        (:func:`_best_start`): a sixth of a head, within the optimizer's reach of each other.
     focus_margin_mm : float
         How far around the structure :func:`refine_around` reads (mm): its boundary and the
         neighbours that place it, not the rest of the head.
@@ -66,6 +69,7 @@ class RegistrationParams:
     sample_fraction: float = 0.1
     iterations: int = 200
     seed: int = 1
+    search_mm: float = 30.0
     focus_margin_mm: float = 10.0
     focus_levels_mm: tuple[float, ...] = (2.0, 1.0)
     focus_sample_fraction: float = 0.5
@@ -151,6 +155,59 @@ def _stage(fixed, moving, fixed_mask, initial, params: RegistrationParams, max_s
     return found.Downcast()
 
 
+def _best_start(fixed, moving, mask, params: RegistrationParams):
+    """The similarity the head's registration starts from: of the two grids' centres aligned,
+    the two intensity centroids aligned, and each of these moved by ``params.search_mm`` along
+    each axis, the one the metric (at the coarsest level) finds best. A scan that reaches far
+    below the head (the neck, the shoulders) puts its grid's centre far from the brain's, and a
+    bright scalp or neck pulls its centroid: one of the starts lies near enough for the
+    optimizer to reach the brain."""
+    import SimpleITK as sitk
+
+    # (the images at the coarsest level once, smoothed and shrunk as the registration reads
+    # them there: each start's metric is then a read of a few thousand samples)
+    coarse = params.levels_mm[0]
+
+    def shrunk(image):
+        factors = [max(1, int(round(coarse / s))) for s in image.GetSpacing()]
+        smooth = sitk.SmoothingRecursiveGaussian(image, 0.5 * coarse)
+        return sitk.Shrink(smooth, factors)
+
+    small_fixed, small_moving = shrunk(fixed), shrunk(moving)
+    small_mask = sitk.Resample(mask, small_fixed, sitk.Transform(), sitk.sitkNearestNeighbor, 0)
+    reg = sitk.ImageRegistrationMethod()
+    reg.SetMetricAsMattesMutualInformation(params.bins)
+    reg.SetMetricSamplingStrategy(reg.RANDOM)
+    reg.SetMetricSamplingPercentage(params.sample_fraction, seed=max(1, params.seed))
+    reg.SetMetricFixedMask(small_mask)
+    reg.SetMetricUseFixedImageGradientFilter(False)
+    reg.SetMetricUseMovingImageGradientFilter(False)
+    reg.SetInterpolator(sitk.sitkLinear)
+    reg.SetNumberOfThreads(1)
+    best, best_value = None, np.inf
+    for how in (sitk.CenteredTransformInitializerFilter.GEOMETRY,
+                sitk.CenteredTransformInitializerFilter.MOMENTS):
+        centred = sitk.CenteredTransformInitializer(fixed, moving, sitk.Similarity3DTransform(),
+                                                    how)
+        for axis in range(4):
+            for sign in ((0,) if axis == 3 else (-1, 1)):
+                candidate = sitk.Similarity3DTransform(centred)
+                shift = np.asarray(candidate.GetTranslation(), dtype=np.float64)
+                if axis < 3:
+                    shift[axis] += sign * params.search_mm
+                candidate.SetTranslation(tuple(shift))
+                reg.SetInitialTransform(candidate, inPlace=False)
+                try:
+                    value = reg.MetricEvaluate(small_fixed, small_moving)
+                except RuntimeError:  # (a start that leaves too few samples in the image)
+                    continue
+                if value < best_value:
+                    best, best_value = candidate, value
+    if best is None:
+        raise RegistrationError("the image and the template do not overlap from any start")
+    return best
+
+
 def register_affine(image: NDArray, affine: NDArray, template: NDArray, template_affine: NDArray,
                     params: RegistrationParams | None = None) -> NDArray:
     """The affine map from ``image``'s world to ``template``'s (4 x 4, world mm to world mm).
@@ -184,9 +241,7 @@ def register_affine(image: NDArray, affine: NDArray, template: NDArray, template
     moving = _to_sitk(np.asarray(image), affine, "image")
     grow = [max(1, int(round(p.mask_margin_mm / s))) for s in fixed.GetSpacing()]
     mask = sitk.BinaryDilate(sitk.Cast(fixed != 0, sitk.sitkUInt8), grow)
-    start = sitk.CenteredTransformInitializer(
-        fixed, moving, sitk.Similarity3DTransform(),
-        sitk.CenteredTransformInitializerFilter.GEOMETRY)
+    start = _best_start(fixed, moving, mask, p)
     similar = _stage(fixed, moving, mask, start, p, 1.0, p.levels_mm, p.sample_fraction)
     general = sitk.AffineTransform(3)
     general.SetCenter(similar.GetCenter())
