@@ -6,20 +6,22 @@ worlds the way FSL FLIRT's and ANTs' affine stages do: Mattes mutual information
 two scanners, or of a scan and an average, need not be alike), read on the template's side within
 its head (the template's non-zero voxels grown by :attr:`RegistrationParams.mask_margin_mm`: a
 skull-stripped template's brain and its boundary, not the neck and air of the image), coarse to
-fine, first a similarity (rotation, translation, one scale) from the two grids' centres, then a
-full affine from that (:func:`register_affine`). A second affine stage
+fine, first a similarity (rotation, translation, one scale) from the best of several starts
+(:func:`_best_start`), then a full affine from that (:func:`register_affine`). A second affine stage
 (:func:`refine_around`), as FSL FIRST's second stage with its subcortical mask, reads only the
 structure of interest and its surroundings (:attr:`RegistrationParams.focus_margin_mm`), finer:
 a whole-head map is a compromise over the head, and a nucleus is where it must hold.
 
 Arrays are in index order ``(i, j, k)`` with NIfTI affines (index -> world mm), as
 :mod:`segsnake.io` reads them; the map returned is a 4 x 4 matrix between the worlds. Random
-metric samples take a seed and the metric is computed by one thread, so one image registers to
-the same map every time.
+metric samples take a seed and SimpleITK runs on one thread while it registers
+(:func:`_sitk_work`), so one image registers to the same map every time.
 """
 
 from __future__ import annotations
 
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,6 +106,31 @@ def _to_sitk(array: NDArray, affine: NDArray, what: str):
     return image
 
 
+#: Serializes the registrations of one process: each sets SimpleITK's process-wide thread count
+#: to one while it runs (threads of a batch run in one process would otherwise restore it under
+#: each other).
+_ONE_THREAD = threading.Lock()
+
+
+@contextmanager
+def _sitk_work(what: str):
+    """SimpleITK's work on one thread (filters, metric and initializers: sums in one order, the
+    same map to the last bit on every run; with threads maps differed by 1e-13 to 1e-8), its
+    exceptions as :class:`RegistrationError`."""
+    import SimpleITK as sitk
+
+    with _ONE_THREAD:
+        threads = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
+        try:
+            yield
+        except RuntimeError as exc:  # (SimpleITK's: e.g. too few samples in both images)
+            line = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+            raise RegistrationError(f"{what} failed: {line}") from None
+        finally:
+            sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(threads)
+
+
 def _matrix(transform) -> NDArray:
     """A SimpleITK matrix-offset transform as a 4 x 4 matrix (fixed world -> moving world)."""
     out = np.eye(4)
@@ -138,21 +165,20 @@ def _stage(fixed, moving, fixed_mask, initial, params: RegistrationParams, max_s
     reg.SetSmoothingSigmasPerLevel([0.5 * mm for mm in levels_mm])
     reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
     reg.SetInitialTransform(initial, inPlace=False)
-    # (one thread, for the metric and for the pyramid's filters: sums in one order, the same map
-    # to the last bit on every run; with the filters' threads maps differed by 1e-13)
-    reg.SetNumberOfThreads(1)
-    threads = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
-    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
-    try:
-        found = reg.Execute(fixed, moving)
-    except RuntimeError as exc:  # (SimpleITK's: e.g. too few samples in both images)
-        line = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise RegistrationError(f"the registration failed: {line}") from None
-    finally:
-        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(threads)
+    reg.SetNumberOfThreads(1)  # (the metric's own threads too: see _sitk_work)
+    found = reg.Execute(fixed, moving)
     if isinstance(found, sitk.CompositeTransform):
         found = found.GetNthTransform(0)
     return found.Downcast()
+
+
+def _check_extent(array: NDArray, affine: NDArray, coarse_mm: float, what: str) -> None:
+    """Refuse an image too thin to read at the coarsest level (four of its voxels an axis)."""
+    extent = np.asarray(array.shape[:3]) * np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)
+    if array.ndim != 3 or np.any(extent < 4 * coarse_mm):
+        raise RegistrationError(
+            f"the {what} spans {' x '.join(f'{e:.0f}' for e in extent)} mm; registration reads "
+            f"it at {coarse_mm:g} mm voxels and needs at least 4 of them along each axis")
 
 
 def _best_start(fixed, moving, mask, params: RegistrationParams):
@@ -164,8 +190,9 @@ def _best_start(fixed, moving, mask, params: RegistrationParams):
     optimizer to reach the brain."""
     import SimpleITK as sitk
 
-    # (the images at the coarsest level once, smoothed and shrunk as the registration reads
-    # them there: each start's metric is then a read of a few thousand samples)
+    # (the images at the coarsest level once, smoothed and shrunk to about its voxel along each
+    # axis: each start's metric then reads every masked voxel of those small images, as
+    # MetricEvaluate does whatever the sampling set)
     coarse = params.levels_mm[0]
 
     def shrunk(image):
@@ -177,8 +204,6 @@ def _best_start(fixed, moving, mask, params: RegistrationParams):
     small_mask = sitk.Resample(mask, small_fixed, sitk.Transform(), sitk.sitkNearestNeighbor, 0)
     reg = sitk.ImageRegistrationMethod()
     reg.SetMetricAsMattesMutualInformation(params.bins)
-    reg.SetMetricSamplingStrategy(reg.RANDOM)
-    reg.SetMetricSamplingPercentage(params.sample_fraction, seed=max(1, params.seed))
     reg.SetMetricFixedMask(small_mask)
     reg.SetMetricUseFixedImageGradientFilter(False)
     reg.SetMetricUseMovingImageGradientFilter(False)
@@ -187,8 +212,11 @@ def _best_start(fixed, moving, mask, params: RegistrationParams):
     best, best_value = None, np.inf
     for how in (sitk.CenteredTransformInitializerFilter.GEOMETRY,
                 sitk.CenteredTransformInitializerFilter.MOMENTS):
-        centred = sitk.CenteredTransformInitializer(fixed, moving, sitk.Similarity3DTransform(),
-                                                    how)
+        try:
+            centred = sitk.CenteredTransformInitializer(fixed, moving,
+                                                        sitk.Similarity3DTransform(), how)
+        except RuntimeError:  # (the centroids of an image with no mass: the centres remain)
+            continue
         for axis in range(4):
             for sign in ((0,) if axis == 3 else (-1, 1)):
                 candidate = sitk.Similarity3DTransform(centred)
@@ -229,25 +257,34 @@ def register_affine(image: NDArray, affine: NDArray, template: NDArray, template
     Raises
     ------
     RegistrationError
-        A grid SimpleITK cannot represent, an empty template, or a registration that fails.
+        A grid SimpleITK cannot represent, an empty (all zero) template or image, one less than
+        four coarsest-level voxels thick, or a registration that fails.
     """
     import SimpleITK as sitk
 
     p = params or RegistrationParams()
     template = np.asarray(template)
-    if not np.any(template != 0):
-        raise RegistrationError("the template is empty (all zero)")
-    fixed = _to_sitk(template, template_affine, "template")
-    moving = _to_sitk(np.asarray(image), affine, "image")
-    grow = [max(1, int(round(p.mask_margin_mm / s))) for s in fixed.GetSpacing()]
-    mask = sitk.BinaryDilate(sitk.Cast(fixed != 0, sitk.sitkUInt8), grow)
-    start = _best_start(fixed, moving, mask, p)
-    similar = _stage(fixed, moving, mask, start, p, 1.0, p.levels_mm, p.sample_fraction)
-    general = sitk.AffineTransform(3)
-    general.SetCenter(similar.GetCenter())
-    general.SetMatrix(similar.GetMatrix())
-    general.SetTranslation(similar.GetTranslation())
-    found = _stage(fixed, moving, mask, general, p, 1.0, p.levels_mm, p.sample_fraction)
+    for what, array in (("template", template), ("image", np.asarray(image))):
+        if not np.any(array != 0):
+            raise RegistrationError(f"the {what} is empty (all zero)")
+    for what, array, grid in (("template", template, template_affine),
+                              ("image", np.asarray(image), affine)):
+        problem = grid_problem(grid)
+        if problem is not None:
+            raise RegistrationError(f"the {what}: {problem}")
+        _check_extent(array, grid, p.levels_mm[0], what)
+    with _sitk_work("the registration"):
+        fixed = _to_sitk(template, template_affine, "template")
+        moving = _to_sitk(np.asarray(image), affine, "image")
+        grow = [max(1, int(round(p.mask_margin_mm / s))) for s in fixed.GetSpacing()]
+        mask = sitk.BinaryDilate(sitk.Cast(fixed != 0, sitk.sitkUInt8), grow)
+        start = _best_start(fixed, moving, mask, p)
+        similar = _stage(fixed, moving, mask, start, p, 1.0, p.levels_mm, p.sample_fraction)
+        general = sitk.AffineTransform(3)
+        general.SetCenter(similar.GetCenter())
+        general.SetMatrix(similar.GetMatrix())
+        general.SetTranslation(similar.GetTranslation())
+        found = _stage(fixed, moving, mask, general, p, 1.0, p.levels_mm, p.sample_fraction)
     # The transform maps the template's (fixed) points to the image's (moving): invert it.
     return np.linalg.inv(_matrix(found))
 
@@ -279,6 +316,14 @@ def refine_around(image: NDArray, affine: NDArray, template: NDArray, template_a
     p = params or RegistrationParams()
     if not np.any(focus):
         raise RegistrationError("the structure to register around is empty")
+    with _sitk_work("the registration around the structure"):
+        return _refined(image, affine, template, template_affine, start, focus, focus_affine, p)
+
+
+def _refined(image, affine, template, template_affine, start, focus, focus_affine, p):
+    """:func:`refine_around`'s work (within :func:`_sitk_work`)."""
+    import SimpleITK as sitk
+
     fixed = _to_sitk(template, template_affine, "template")
     moving = _to_sitk(np.asarray(image), affine, "image")
     region = _to_sitk(np.asarray(focus, dtype=np.uint8), focus_affine, "structure")

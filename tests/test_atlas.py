@@ -159,6 +159,10 @@ def test_registration_refuses_what_it_cannot_represent():
         register_affine(image, sheared, image, TEMPLATE_AFFINE)
     with pytest.raises(RegistrationError, match="empty"):
         register_affine(image, TEMPLATE_AFFINE, np.zeros(SHAPE), TEMPLATE_AFFINE)
+    with pytest.raises(RegistrationError, match="image is empty"):
+        register_affine(np.zeros(SHAPE), TEMPLATE_AFFINE, image, TEMPLATE_AFFINE)
+    with pytest.raises(RegistrationError, match="needs at least 4 of them along each axis"):
+        register_affine(image[:, :, 18:19], TEMPLATE_AFFINE, image, TEMPLATE_AFFINE)
     with pytest.raises(RegistrationError, match="zero or undefined voxel size"):
         register_affine(image, np.diag([0.0, 2.0, 2.0, 1.0]), image, TEMPLATE_AFFINE,
                         RegistrationParams())
@@ -192,6 +196,32 @@ def test_the_structure_lands_on_another_grid_through_the_map(atlas_case):
     shifted[:3, 3] += VOXEL_MM * np.array([2, -1, 3])
     moved = structure_mask(nucleus, SHAPE, shifted, np.eye(4))
     np.testing.assert_array_equal(moved, np.roll(labels == 1, (-2, 1, -3), axis=(0, 1, 2)))
+
+
+def test_the_structure_lands_where_it_lies_on_a_turned_anisotropic_grid(atlas_case):
+    # The image's grid: 1.5 x 1.5 x 3 mm voxels, turned 25 degrees about z and 10 about x, its
+    # box covering only part of the head (the nucleus cut by a face). The mask must be the
+    # nucleus' analytic ellipsoid sampled at the image's voxel centres, where they lie in it.
+    atlas = read_atlas(str(atlas_case["atlas"]))
+    nucleus = find_structure(atlas, "nucleus")
+    a, b = np.deg2rad(25.0), np.deg2rad(10.0)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    grid = np.eye(4)
+    grid[:3, :3] = rz @ rx @ np.diag([1.5, 1.5, 3.0])
+    centre = np.asarray(SHAPE) * VOXEL_MM / 2 + [10, 6, 0] + TEMPLATE_AFFINE[:3, 3]
+    shape = (30, 30, 4)
+    grid[:3, 3] = centre - grid[:3, :3] @ [15.0, 15.0, 2.0]  # (the nucleus' top cut off)
+    mask = structure_mask(nucleus, shape, grid, np.eye(4))
+    world = np.c_[np.indices(shape).reshape(3, -1).T, np.ones(np.prod(shape))] @ grid.T
+    # the nucleus as drawn: voxel centres of the 2 mm grid within the ellipsoid; the oracle
+    # reads the analytic ellipsoid at the image's centres (its drawn staircase differs by a
+    # voxel at most)
+    r = sum(((world[:, k] - centre[k]) / ax) ** 2 for k, ax in enumerate((7, 9, 6)))
+    oracle = (r <= 1.0).reshape(shape)
+    assert oracle.any() and not oracle.all()
+    overlap = 2 * (mask & oracle).sum() / (mask.sum() + oracle.sum())
+    assert overlap > 0.9, overlap  # (measured 0.952)
 
 
 @pytest.mark.parametrize("damage, message", [
@@ -238,10 +268,17 @@ def test_segment_from_the_atlas_finds_the_moved_nucleus(atlas_case, tmp_path, ca
     saved = json.loads((tmp_path / "seg" / "snake.json").read_text())
     start = saved["settings"]["atlas_start"]
     assert start["structure"] == "deep:nucleus"
-    # the map recorded is the registration's: the inverse of the subject's move, to 1 mm
-    found = np.asarray(start["image_to_template"])
-    centre = np.r_[np.asarray(SHAPE) * VOXEL_MM / 2 + TEMPLATE_AFFINE[:3, 3], 1.0]
-    assert np.linalg.norm(found @ (_moved() @ centre) - centre) < 1.0
+    # the maps recorded are the registration's, the inverse of the subject's move: the head's
+    # to 1 mm at the corners of the brain's box, the refined one at the corners of the
+    # nucleus' (the second stage holds where the structure is)
+    middle = np.asarray(SHAPE) * VOXEL_MM / 2 + TEMPLATE_AFFINE[:3, 3]
+    corners = [2 * np.subtract(c, 0.5) for c in np.ndindex(2, 2, 2)]
+    for key, centre, half in (("head_to_template", middle, (30, 34, 26)),
+                              ("image_to_template", middle + [10, 6, 0], (7, 9, 6))):
+        found = np.asarray(start[key])
+        for c in corners:
+            p = np.r_[centre + c * half, 1.0]
+            assert np.linalg.norm(found @ (_moved() @ p) - p) < 1.0, (key, p)
 
 
 def test_a_click_names_the_structure_under_it(atlas_case, tmp_path, capsys):
