@@ -19,7 +19,7 @@ structure's fit (the run's initial model) against the reference. Each runs on Co
 20, -15, 10 mm off and scaled by 1.08 (the truths moved alike), which a map by world
 coordinates alone would miss and the registration must find.
 
-    .venv/bin/python benchmarks/atlas_start.py [--out DIR] [--cases NAME ...]   # ~5 minutes
+    .venv/bin/python benchmarks/atlas_start.py [--out DIR] [--cases NAME ...]   # ~8 minutes
 
 Needs ``make bench-real-data`` (the cases) and PyPI (the two wheels, once).
 """

@@ -545,6 +545,9 @@ class SegmentConfig:
             if self.structure is not None and self.center is not None:
                 return "structure", ("structure names the atlas' structure and center clicks in "
                                      "it: give one or the other")
+            if self.structure is None and self.center is None:
+                return "atlas", ("atlas needs its structure named (structure) or a click in it "
+                                 "(center)")
             if (self.m1 is None) != (self.m2 is None):
                 return "atlas", "atlas fits its structure at m1 x m2: give both or neither"
             if self.prior_modes:

@@ -40,9 +40,9 @@ def test_defaults_are_the_documented_ones():
     assert (c.coarse_to_fine, c.prior_weight, c.prior_space, c.nan, c.polarity, c.world) == (
         True, None, None, "refuse", "auto", False)  # (the prior's: by its kind)
     assert c.prior_used() == (1.0, "affine")
-    assert c.replace(atlas="atlas").prior_used() == (5.0, "similarity")
-    assert c.replace(atlas="atlas", prior_weight=2, prior_space="rigid").prior_used() == \
-        (2.0, "rigid")
+    assert c.replace(atlas="atlas", structure="s").prior_used() == (5.0, "similarity")
+    assert c.replace(atlas="atlas", structure="s", prior_weight=2,
+                     prior_space="rigid").prior_used() == (2.0, "rigid")
     assert c.m1 is c.m2 is c.scale is c.center is c.volume is None
     assert c.mesh is None  # no extra surface file unless asked
     assert c.energy == "auto"  # pipeline.region_energy decides
