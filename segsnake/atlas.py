@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import os
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,6 +75,11 @@ class Structure:
     label_set: LabelSet
     values: tuple[int, ...]
     description: str
+
+    @cached_property
+    def voxels(self) -> NDArray:
+        """Where the structure is drawn on its label set's grid (boolean)."""
+        return np.isin(self.label_set.labels, self.values)
 
 
 def _read_names(path: str) -> dict[int, str]:
@@ -228,7 +234,7 @@ def structure_mask(structure: Structure, shape: tuple[int, int, int], affine: ND
     from scipy import ndimage
 
     s = structure.label_set
-    inside = np.isin(s.labels, structure.values)
+    inside = structure.voxels
     mask = np.zeros(tuple(shape), dtype=bool)
     if not inside.any():
         return mask
@@ -294,11 +300,9 @@ def atlas_start(image: NDArray, affine: NDArray, spacing, atlas: Atlas, structur
     from segsnake.parameterize import TopologyError
     from segsnake.registration import refine_around, register_affine
 
-    if structure is not None:  # (a name the atlas lacks: refused before the registration)
-        find_structure(atlas, structure)
     head = register_affine(image, affine, atlas.template, atlas.template_affine, params)
     found = find_structure(atlas, structure, click_world, head)
-    focus = np.isin(found.label_set.labels, found.values)
+    focus = found.voxels
     if not focus.any():
         raise InputError(f"{found.label_set.path}: {found.description} is named in "
                          f"{found.label_set.name}.csv but drawn on no voxel")

@@ -928,17 +928,26 @@ def _nifti_image(arr: np.ndarray, reference: Volume, dtype: np.dtype):
     return img
 
 
-def _sitk_image(arr: np.ndarray, reference: Volume):
+def sitk_image(array: np.ndarray, affine: np.ndarray):
+    """A SimpleITK image of ``array`` (index order i, j, k) whose physical frame is the one
+    ``affine`` maps its indices into (its columns orthogonal: SimpleITK's grids are)."""
     import SimpleITK as sitk
 
-    a3 = arr.reshape(reference.data.shape)
-    image = sitk.GetImageFromArray(np.ascontiguousarray(a3.transpose(2, 1, 0)))
-    lin = _LPS_TO_RAS @ reference.affine[:3, :3]
+    affine = np.asarray(affine, dtype=np.float64)
+    image = sitk.GetImageFromArray(np.ascontiguousarray(array.transpose(2, 1, 0)))
+    lin = affine[:3, :3]
     spacing = np.sqrt(np.sum(lin * lin, axis=0))
     image.SetSpacing(tuple(float(s) for s in spacing))
     image.SetDirection(tuple(float(d) for d in (lin / spacing).reshape(-1)))
-    image.SetOrigin(tuple(float(o) for o in _LPS_TO_RAS @ reference.affine[:3, 3]))
+    image.SetOrigin(tuple(float(o) for o in affine[:3, 3]))
     return image
+
+
+def _sitk_image(arr: np.ndarray, reference: Volume):
+    # (SimpleITK's physical frame is LPS, the NIfTI affine's RAS)
+    lps = np.eye(4)
+    lps[:3] = _LPS_TO_RAS @ np.asarray(reference.affine, dtype=np.float64)[:3]
+    return sitk_image(arr.reshape(reference.data.shape), lps)
 
 
 def _save(arr: np.ndarray, reference: Volume, path, overwrite: bool, dtype) -> None:

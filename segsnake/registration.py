@@ -90,20 +90,14 @@ def grid_problem(affine: NDArray) -> str | None:
 
 
 def _to_sitk(array: NDArray, affine: NDArray, what: str):
-    """A SimpleITK image of ``array`` (index order i, j, k) on the grid of ``affine``."""
-    import SimpleITK as sitk
+    """A SimpleITK image of ``array`` (index order i, j, k, as float32) on the grid of
+    ``affine``, its physical frame the affine's world (both images of a registration alike)."""
+    from segsnake.io import sitk_image
 
     problem = grid_problem(affine)
     if problem is not None:
         raise RegistrationError(f"the {what}: {problem}")
-    affine = np.asarray(affine, dtype=np.float64)
-    spacing = np.linalg.norm(affine[:3, :3], axis=0)
-    direction = affine[:3, :3] / spacing
-    image = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(array), dtype=np.float32))
-    image.SetSpacing(tuple(float(s) for s in spacing))
-    image.SetOrigin(tuple(float(o) for o in affine[:3, 3]))
-    image.SetDirection(tuple(float(d) for d in direction.ravel()))
-    return image
+    return sitk_image(np.asarray(array, dtype=np.float32), affine)
 
 
 #: Serializes the registrations of one process: each sets SimpleITK's process-wide thread count
