@@ -49,13 +49,26 @@ TEMPLATE_NAME = "template.nii.gz"
 
 @dataclass(frozen=True)
 class LabelSet:
-    """One label image of an atlas: integer labels on its grid, and their names."""
+    """One label image of an atlas: integer labels on its grid, and their names. Its voxels are
+    read when first asked for (:attr:`labels`): an atlas may hold many sets, a run uses one."""
 
     name: str
     path: str
-    labels: NDArray  # (i, j, k) integer labels, 0 = none
     affine: NDArray
     names: dict[int, str]  # (without 0, which is no label)
+
+    @cached_property
+    def labels(self) -> NDArray:
+        """The (i, j, k) integer labels, 0 = none.
+
+        Raises
+        ------
+        InputError
+            The file's voxels cannot be read.
+        """
+        image, _ = _nifti_header(self.path)
+        # (labels stored as floats with a scale carry rounding: 11.000001 is label 11)
+        return np.rint(_nifti_voxels(self.path, image)).astype(np.int32)
 
 
 @dataclass(frozen=True)
@@ -102,6 +115,37 @@ def _read_names(path: str) -> dict[int, str]:
     return names
 
 
+def _nifti_header(path: str):
+    """The NIfTI file's image (nibabel reads its voxels only when asked) and its affine, checked
+    for registration; a file that cannot be read or a grid it cannot use as :class:`InputError`."""
+    import nibabel as nib
+
+    from segsnake.io import _quiet_nibabel
+    from segsnake.registration import grid_problem
+
+    try:
+        with _quiet_nibabel():
+            image = nib.load(path)
+    except Exception as exc:  # (nibabel raises many kinds for a damaged file)
+        raise InputError(f"{path}: cannot read it as NIfTI: {exc}") from None
+    affine = np.asarray(image.affine, dtype=np.float64)
+    problem = grid_problem(affine)
+    if problem is not None:
+        raise InputError(f"{path}: {problem}")
+    return image, affine
+
+
+def _nifti_voxels(path: str, image) -> NDArray:
+    """The voxels of :func:`_nifti_header`'s ``image``; a damaged file as :class:`InputError`."""
+    from segsnake.io import _quiet_nibabel
+
+    try:
+        with _quiet_nibabel():
+            return np.asarray(image.dataobj)
+    except Exception as exc:  # (a truncated or corrupt data block)
+        raise InputError(f"{path}: cannot read its voxels: {exc}") from None
+
+
 def read_atlas(folder: str) -> Atlas:
     """Read an atlas folder (see the module's docstring).
 
@@ -110,32 +154,15 @@ def read_atlas(folder: str) -> Atlas:
     InputError
         No such folder, no template, no label set, or a file that cannot be read.
     """
-    import nibabel as nib
-
-    from segsnake.io import _quiet_nibabel
-    from segsnake.registration import grid_problem
-
     if not os.path.isdir(folder):
         raise InputError(f"{folder}: no such atlas folder")
     tpath = os.path.join(folder, TEMPLATE_NAME)
     if not os.path.isfile(tpath):
         raise InputError(f"{folder}: an atlas folder needs {TEMPLATE_NAME} (its T1 template)")
-
-    def load(path: str):
-        try:
-            with _quiet_nibabel():
-                img = nib.load(path)
-                data, affine = np.asarray(img.dataobj), np.asarray(img.affine, dtype=np.float64)
-        except Exception as exc:  # (nibabel raises many kinds for a damaged file)
-            raise InputError(f"{path}: cannot read it as NIfTI: {exc}") from None
-        problem = grid_problem(affine)
-        if problem is not None:
-            raise InputError(f"{path}: {problem}")
-        return data, affine
-
-    template, template_affine = load(tpath)
-    if template.ndim != 3:
-        raise InputError(f"{tpath}: the template must be a 3D image, got {template.ndim}D")
+    image, template_affine = _nifti_header(tpath)
+    if len(image.shape) != 3:
+        raise InputError(f"{tpath}: the template must be a 3D image, got {len(image.shape)}D")
+    template = _nifti_voxels(tpath, image)
     sets = []
     for entry in sorted(os.listdir(folder)):
         if not entry.endswith(".nii.gz") or entry == TEMPLATE_NAME:
@@ -146,12 +173,10 @@ def read_atlas(folder: str) -> Atlas:
         if not os.path.isfile(names_path):
             raise InputError(f"{path}: a label set needs its names in {name}.csv "
                              f"('value,name' per line)")
-        labels, affine = load(path)
-        if labels.ndim != 3:
-            raise InputError(f"{path}: a label set must be a 3D image, got {labels.ndim}D")
-        # (labels stored as floats with a scale carry rounding: 11.000001 is label 11)
-        sets.append(LabelSet(name, path, np.rint(labels).astype(np.int32), affine,
-                             _read_names(names_path)))
+        image, affine = _nifti_header(path)  # (its header: the voxels when asked for)
+        if len(image.shape) != 3:
+            raise InputError(f"{path}: a label set must be a 3D image, got {len(image.shape)}D")
+        sets.append(LabelSet(name, path, affine, _read_names(names_path)))
     if not sets:
         raise InputError(f"{folder}: the atlas has no label set (NAME.nii.gz with NAME.csv)")
     return Atlas(folder, template, template_affine, tuple(sets))

@@ -636,14 +636,14 @@ def _sized_like_prior(config, reference):
 
 def _read_atlas(config):
     """``--atlas``'s folder, read (:func:`segsnake.atlas.read_atlas`) and its ``--structure``
-    checked, or None without one."""
+    checked (a damaged label set refused before the image is read), or None without one."""
     if config.atlas is None:
         return None
     from segsnake.atlas import find_structure, read_atlas
 
     atlas = read_atlas(config.atlas)
-    if config.structure is not None:
-        find_structure(atlas, config.structure)
+    if config.structure is not None:  # (its name, and its label set's voxels, read now)
+        find_structure(atlas, config.structure).label_set.labels
     return atlas
 
 

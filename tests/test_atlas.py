@@ -252,6 +252,19 @@ def test_a_damaged_atlas_folder_is_refused_with_its_file(atlas_case, tmp_path, d
         read_atlas(str(folder))
 
 
+def test_a_label_set_is_read_when_asked_for_and_a_damaged_one_says_so(atlas_case, tmp_path):
+    import shutil
+
+    folder = tmp_path / "atlas"
+    shutil.copytree(atlas_case["atlas"], folder)
+    whole = (folder / "deep.nii.gz").read_bytes()
+    (folder / "deep.nii.gz").write_bytes(whole[: len(whole) // 2])  # (its header intact)
+    atlas = read_atlas(str(folder))  # (the header only: the set's names are there)
+    structure = find_structure(atlas, "nucleus")
+    with pytest.raises(InputError, match="deep.nii.gz: cannot read"):
+        structure.voxels
+
+
 def _segment(capsys, *args) -> tuple[int, dict, str]:
     rc = main(["segment", *map(str, args), "--json", "--quiet"])
     cap = capsys.readouterr()
