@@ -243,9 +243,35 @@ def find_structure(atlas: Atlas, structure: str | None, at_world: NDArray | None
         if value is not None:
             return Structure(s, (value,), f"{s.name}:{s.names[value]}")
     names = sorted({f"{s.name}:{n}" for s in candidates for n in s.names.values()})
+    like = _names_like(label, names)
+    if like:  # ("thalamus" for an atlas' "thalamus-lh" and "thalamus-rh")
+        raise InputError(f"{atlas.folder}: no structure {structure!r}; did you mean "
+                         f"{' or '.join(like)}?")
     shown = ", ".join(names[:12]) + (f" and {len(names) - 12} more" if len(names) > 12 else "")
     raise InputError(f"{atlas.folder}: no structure {structure!r}; the atlas has {shown}, and "
                      f"each label set as a whole ({', '.join(sets)})")
+
+
+#: At most this many of an atlas' names are offered for a structure it does not have.
+MAX_SUGGESTIONS = 6
+
+
+def _names_like(asked: str, names: list[str]) -> list[str]:
+    """The ``SET:LABEL`` names a user who typed ``asked`` may have meant: those whose label
+    holds every word of it (``thalamus`` -> ``aseg:thalamus-lh``, ``aseg:thalamus-rh``), else
+    those difflib finds close to it (``Left-Thalamus``, ``hipocampus``), at most
+    :data:`MAX_SUGGESTIONS`."""
+    import difflib
+    import re
+
+    words = [w for w in re.split(r"[^a-z0-9]+", asked.lower()) if w]
+    labels = {n: n.split(":", 1)[1].lower() for n in names}
+    holding = [n for n, label in labels.items() if words and all(w in label for w in words)]
+    if holding:
+        return holding[:MAX_SUGGESTIONS]
+    close = difflib.get_close_matches(asked.lower(), list(labels.values()), n=MAX_SUGGESTIONS,
+                                      cutoff=0.6)
+    return [n for n, label in labels.items() if label in close][:MAX_SUGGESTIONS]
 
 
 def structure_mask(structure: Structure, shape: tuple[int, int, int], affine: NDArray,

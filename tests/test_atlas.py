@@ -179,6 +179,11 @@ def test_structures_are_found_by_name_value_set_or_click(atlas_case):
     assert find_structure(atlas, None, centre, np.eye(4)).description == "deep:nucleus"
     with pytest.raises(InputError, match="no structure 'putamen'.*deep:nucleus"):
         find_structure(atlas, "putamen")
+    # a name the atlas nearly has: its labels offered, not the whole list
+    with pytest.raises(InputError, match=r"no structure 'nucleu'; did you mean deep:nucleus\?$"):
+        find_structure(atlas, "nucleu")
+    with pytest.raises(InputError, match=r"did you mean deep:ventricle\?$"):
+        find_structure(atlas, "deep:ventricel")
     with pytest.raises(InputError, match="no label set 'aseg'"):
         find_structure(atlas, "aseg:nucleus")
     with pytest.raises(InputError, match="on no label"):
