@@ -75,8 +75,9 @@ def body_mask(hu: NDArray) -> NDArray[np.bool_]:
     return body
 
 
-def trachea_reference(hu: NDArray) -> tuple[NDArray[np.bool_], list[int]]:
-    """The trachea above the carina: air below :data:`AIR_HU` inside the body, tracked slice by slice.
+def trachea_reference(hu: NDArray, air_hu: float = AIR_HU) -> tuple[NDArray[np.bool_], list[int]]:
+    """The trachea above the carina: air below ``air_hu`` (default :data:`AIR_HU`) inside the
+    body, tracked slice by slice.
 
     Axis 2 must run from inferior (index 0) to superior. The lumen is tracked downwards from the
     most superior axial slice: there it is the largest air component inside the body; in each
@@ -92,7 +93,7 @@ def trachea_reference(hu: NDArray) -> tuple[NDArray[np.bool_], list[int]]:
     slices : list of int
         The axial slices it occupies, superior first.
     """
-    air = (hu < AIR_HU) & body_mask(hu)
+    air = (hu < air_hu) & body_mask(hu)
     mask = np.zeros(hu.shape, bool)
     top = hu.shape[2] - 1
     labels, n = ndimage.label(air[:, :, top])

@@ -1,0 +1,62 @@
+"""Score kept trachea masks against the benchmark's reference taken at other air thresholds.
+
+The lung2 trachea reference is the air below :data:`cases.AIR_HU` (-950 HU) inside the body,
+tracked slice by slice (:func:`cases.trachea_reference`). This script builds the same reference
+at other thresholds, on the benchmark reference's own slices, and prints the Dice of every kept
+``mask.nii.gz`` (``bench_real.py --cases lung2-trachea --keep DIR``) against each: where the
+result's surface lies between the lumen's core and the wall's half maximum.
+
+Usage::
+
+    .venv/bin/python benchmarks/real/trachea_thresholds.py DIR [--thresholds -950 -800 -600 -500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import sys
+
+import nibabel as nib
+import numpy as np
+
+sys.path[:0] = [os.path.dirname(__file__), os.path.dirname(os.path.dirname(__file__))]
+import cases  # noqa: E402  (benchmarks/real, with benchmarks/ on the path as it expects)
+from fetch import cache_dir  # noqa: E402
+
+
+def dice(a: np.ndarray, b: np.ndarray) -> float:
+    return 2.0 * float((a & b).sum()) / float(a.sum() + b.sum())
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("keep", help="a bench_real.py --keep directory")
+    ap.add_argument("--thresholds", type=float, nargs="+", default=[-950.0, -800.0, -600.0, -500.0])
+    args = ap.parse_args(argv)
+    case_dir = os.path.join(cache_dir(), "cases")
+    ct = nib.load(os.path.join(case_dir, "lung2_ct.nii.gz")).get_fdata()
+    reference = nib.load(os.path.join(case_dir, "lung2_trachea.nii.gz")).get_fdata() > 0
+    on_slices = np.zeros(ct.shape[2], bool)
+    on_slices[np.unique(np.nonzero(reference)[2])] = True
+    refs = {}
+    for hu in args.thresholds:
+        mask, _ = cases.trachea_reference(ct, air_hu=hu)
+        mask[:, :, ~on_slices] = False
+        refs[hu] = mask
+    print("| references | " + " | ".join(f"{a:g} / {b:g}: {dice(refs[a], refs[b]):.3f}"
+                                         for a in refs for b in refs if a < b) + " |")
+    print("| run | " + " | ".join(f"< {hu:g} HU" for hu in refs) + " | volume / reference's |")
+    print("|---" * (len(refs) + 2) + "|")
+    for path in sorted(glob.glob(os.path.join(args.keep, "**", "mask.nii.gz"), recursive=True)):
+        seg = nib.load(path).get_fdata() > 0
+        run = os.path.relpath(os.path.dirname(path), args.keep)
+        ratios = " / ".join(f"{seg.sum() / refs[hu].sum():.3f}" for hu in refs)
+        print(f"| {run} | " + " | ".join(f"{dice(seg, m):.3f}" for m in refs.values())
+              + f" | {ratios} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
