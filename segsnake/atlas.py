@@ -243,10 +243,11 @@ def find_structure(atlas: Atlas, structure: str | None, at_world: NDArray | None
         if value is not None:
             return Structure(s, (value,), f"{s.name}:{s.names[value]}")
     names = sorted({f"{s.name}:{n}" for s in candidates for n in s.names.values()})
-    like = _names_like(label, names)
+    like, more = _names_like(label, names)
     if like:  # ("thalamus" for an atlas' "thalamus-lh" and "thalamus-rh")
+        offered = like[0] if len(like) == 1 else f"{', '.join(like[:-1])} or {like[-1]}"
         raise InputError(f"{atlas.folder}: no structure {structure!r}; did you mean "
-                         f"{' or '.join(like)}?")
+                         f"{offered}{f' (or {more} more like it)' if more else ''}?")
     shown = ", ".join(names[:12]) + (f" and {len(names) - 12} more" if len(names) > 12 else "")
     raise InputError(f"{atlas.folder}: no structure {structure!r}; the atlas has {shown}, and "
                      f"each label set as a whole ({', '.join(sets)})")
@@ -256,22 +257,27 @@ def find_structure(atlas: Atlas, structure: str | None, at_world: NDArray | None
 MAX_SUGGESTIONS = 6
 
 
-def _names_like(asked: str, names: list[str]) -> list[str]:
-    """The ``SET:LABEL`` names a user who typed ``asked`` may have meant: those whose label
-    holds every word of it (``thalamus`` -> ``aseg:thalamus-lh``, ``aseg:thalamus-rh``), else
-    those difflib finds close to it (``Left-Thalamus``, ``hipocampus``), at most
-    :data:`MAX_SUGGESTIONS`."""
+def _names_like(asked: str, names: list[str]) -> tuple[list[str], int]:
+    """The ``SET:LABEL`` names a user who typed ``asked`` may have meant, and how many more
+    there were beyond :data:`MAX_SUGGESTIONS`: those whose label holds every word of it
+    (``putamen lh`` -> ``aseg:putamen-lh``), else every word of three characters or more
+    (``thalamus`` -> ``aseg:thalamus-lh``, ``aseg:thalamus-rh``; a name of short words alone,
+    ``lh``, would match half the atlas), else those difflib finds close to it, closest first
+    (``Left-Thalamus``, ``hipocampus``)."""
     import difflib
     import re
 
     words = [w for w in re.split(r"[^a-z0-9]+", asked.lower()) if w]
-    labels = {n: n.split(":", 1)[1].lower() for n in names}
-    holding = [n for n, label in labels.items() if words and all(w in label for w in words)]
-    if holding:
-        return holding[:MAX_SUGGESTIONS]
-    close = difflib.get_close_matches(asked.lower(), list(labels.values()), n=MAX_SUGGESTIONS,
-                                      cutoff=0.6)
-    return [n for n, label in labels.items() if label in close][:MAX_SUGGESTIONS]
+    labels = {n: n.rpartition(":")[2].lower() for n in names}  # (as find_structure splits)
+    found = []
+    if any(len(w) >= 3 for w in words):  # (every word, then the long ones: "putamen lh")
+        for kept in (words, [w for w in words if len(w) >= 3]):
+            found = found or [n for n, label in labels.items() if all(w in label for w in kept)]
+    if not found:
+        close = difflib.get_close_matches(asked.lower(), sorted(set(labels.values())),
+                                          n=MAX_SUGGESTIONS, cutoff=0.6)
+        found = [n for c in close for n, label in labels.items() if label == c]
+    return found[:MAX_SUGGESTIONS], max(0, len(found) - MAX_SUGGESTIONS)
 
 
 def structure_mask(structure: Structure, shape: tuple[int, int, int], affine: NDArray,

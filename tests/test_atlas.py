@@ -17,7 +17,7 @@ import nibabel as nib
 import numpy as np
 import pytest
 
-from segsnake.atlas import find_structure, read_atlas, structure_mask
+from segsnake.atlas import Atlas, LabelSet, find_structure, read_atlas, structure_mask
 from segsnake.cli import main
 from segsnake.errors import InputError
 from segsnake.registration import RegistrationError, RegistrationParams, refine_around, \
@@ -184,6 +184,15 @@ def test_structures_are_found_by_name_value_set_or_click(atlas_case):
         find_structure(atlas, "nucleu")
     with pytest.raises(InputError, match=r"did you mean deep:ventricle\?$"):
         find_structure(atlas, "deep:ventricel")
+    # several offered, joined "A, B or C"; more than six cut with how many were left out
+    many = Atlas(atlas.folder, atlas.template, atlas.template_affine, (LabelSet(
+        "big", "big.nii.gz", np.eye(4), {v: f"lobule-{v}" for v in range(1, 10)}),))
+    with pytest.raises(InputError, match=r"did you mean big:lobule-1, big:lobule-2, "
+                                         r"big:lobule-3, big:lobule-4, big:lobule-5 or "
+                                         r"big:lobule-6 \(or 3 more like it\)\?$"):
+        find_structure(many, "lobule")
+    with pytest.raises(InputError, match="the atlas has big:lobule-1"):  # ("lh": too short)
+        find_structure(many, "lh")
     with pytest.raises(InputError, match="no label set 'aseg'"):
         find_structure(atlas, "aseg:nucleus")
     with pytest.raises(InputError, match="on no label"):

@@ -76,6 +76,10 @@ def test_two_class_density_is_the_share_outside_linear_between_the_means():
     near = two_class_density(np.array([[[95.0, 105.0]]], np.float32), m,
                              np.full((1, 1, 2), 100.0, np.float32)).ravel()
     assert np.all(np.isfinite(near)) and near[0] == pytest.approx(0.0)
+    # ... and half a spread from it, the share is read against the spread: (25 - 100) / 100
+    floor = two_class_density(np.array([[[95.0]]], np.float32), m,
+                              np.full((1, 1, 1), 105.0, np.float32)).ravel()
+    assert floor[0] == pytest.approx(-0.75)
 
 
 def test_local_outside_mean_reads_the_shell_nearby_and_its_median_far_away():

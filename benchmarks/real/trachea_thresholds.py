@@ -3,8 +3,9 @@
 The lung2 trachea reference is the air below :data:`cases.AIR_HU` (-950 HU) inside the body,
 tracked slice by slice (:func:`cases.trachea_reference`). This script builds the same reference
 at other thresholds, on the benchmark reference's own slices, and prints the Dice of every kept
-``mask.nii.gz`` (``bench_real.py --cases lung2-trachea --keep DIR``) against each: where the
-result's surface lies between the lumen's core and the wall's half maximum.
+``mask.nii.gz`` of the ``lung2-trachea`` case under ``DIR`` (``bench_real.py --keep DIR``)
+against each: where the result's surface lies between the lumen's core and the wall's half
+maximum.
 
 Usage::
 
@@ -52,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in sorted(glob.glob(os.path.join(args.keep, "**", "mask.nii.gz"), recursive=True)):
         seg = nib.load(path).get_fdata() > 0
         run = os.path.relpath(os.path.dirname(path), args.keep)
+        if "lung2-trachea" not in os.path.abspath(path).split(os.sep):
+            continue  # (a whole --keep folder holds the other cases' masks too)
         ratios = " / ".join(f"{seg.sum() / refs[hu].sum():.3f}" for hu in refs)
         print(f"| {run} | " + " | ".join(f"{dice(seg, m):.3f}" for m in refs.values())
               + f" | {ratios} |")
