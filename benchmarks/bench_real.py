@@ -319,6 +319,11 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
                            "shape": list(truth.shape), "spacing": sp.tolist(),
                            "init": case["init"], "runs": []}
     starts = clicks(case, 0 if quick else n_clicks)
+    atlas_dir = None  # (the atlas folder, checked and laid out once a case)
+    if ATLAS in tools and case["name"].startswith("colin27-") and case["name"] != BRAIN_CASE:
+        from atlas_start import atlas_folder
+
+        atlas_dir = atlas_folder(_cache())
     tmp = tempfile.mkdtemp(prefix="segsnake-bench-real-")
     seg_click_mask = None
     try:
@@ -344,14 +349,10 @@ def run_case(case: dict, tools: list[str], n_clicks: int, quick: bool, qc_dir: s
             if CENTRE_ONLY in tools and init["shape"] == "sphere":
                 centre = {"shape": "sphere", "center": init["center"]}
                 record(CENTRE_ONLY, label, centre, run_segsnake(case["image"], centre, tmp))
-            if ATLAS in tools and case["name"].startswith("colin27-") \
-                    and case["name"] != BRAIN_CASE:
-                from atlas_start import atlas_folder
-                from fetch import cache_dir
-
+            if atlas_dir is not None:
                 named = ATLAS_NAMES.get(case["name"])
                 if named is None or label == "click":  # (a named structure takes no click)
-                    extra = ["--atlas", atlas_folder(cache_dir()),
+                    extra = ["--atlas", atlas_dir,
                              *(["--structure", named] if named else [])]
                     click = None if named else {"shape": "sphere", "center": init["center"]}
                     record(ATLAS, label, click, run_segsnake(case["image"], click, tmp, extra))

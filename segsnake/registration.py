@@ -305,8 +305,6 @@ def refine_around(image: NDArray, affine: NDArray, template: NDArray, template_a
     ndarray
         The refined map (image world -> template world).
     """
-    import SimpleITK as sitk
-
     p = params or RegistrationParams()
     if not np.any(focus):
         raise RegistrationError("the structure to register around is empty")

@@ -28,7 +28,6 @@ import numpy as np
 
 from segsnake import __version__, outdir
 from segsnake.allocator import trim
-from segsnake.config import PRIOR_SPACE_FILE, PRIOR_WEIGHT_FILE
 from segsnake.errors import ConfigError, InputError, NoBoundaryError, OutputError, \
     SegmentationError
 from segsnake.centerline_files import read_centerline, resolve_centerline
@@ -355,11 +354,10 @@ def _segment_locked(image_path, out_dir, config, truth_path, truth_label, truth_
         atlas_s = time.perf_counter() - t0
         config = config.replace(m1=init_model.m1, m2=init_model.m2)
         if weight > 0:  # (the atlas' shape is the prior too)
-            extra = _prior_energy(config, init_model, source=f"{config.atlas} (atlas)",
-                                  weight=weight, space=space)
+            extra = _prior_energy(config, init_model, source=f"{config.atlas} (atlas)")
     if config.prior is not None and weight > 0:
         reference = read_prior(config.prior, volume.affine, volume.spacing)
-        extra = _prior_energy(config, reference, weight=weight, space=space)
+        extra = _prior_energy(config, reference)
         config = _sized_like_prior(config, reference)
     try:
         result = segment_volume(volume.data, volume.spacing, config,
@@ -701,7 +699,7 @@ def _unrefined(model, volume, reason: Exception):
                          [], {}, "none", model, {"unrefined": warning})
 
 
-def _prior_energy(config, reference=None, source=None, weight=None, space=None):
+def _prior_energy(config, reference=None, source=None):
     """The ``--prior`` energy for :func:`segment_volume`'s ``extra_energy`` (a factory per stage).
 
     REF is any saved model: ``segsnake shape`` output, a previous ``snake.json`` or a
@@ -711,16 +709,12 @@ def _prior_energy(config, reference=None, source=None, weight=None, space=None):
     image energy. ``reference``: the prior file's model in the image's scaled index space, as
     the run reads it (:func:`segsnake.saved_snake.read_prior`); without it, the file's model as
     stored (:func:`segsnake.saved_snake.read_model`). ``source``: the prior's name in messages
-    (default the prior file); ``weight``, ``space``: the prior's weight and space (default
-    ``config.prior_weight``, ``config.prior_space``, else a prior file's,
-    :data:`segsnake.config.PRIOR_WEIGHT_FILE` and :data:`~segsnake.config.PRIOR_SPACE_FILE`).
+    (default the prior file). Its weight and space are :meth:`SegmentConfig.prior_used`'s.
     """
     from segsnake.priors import relative_prior_weight
 
     path = source or config.prior
-    space = space or config.prior_space or PRIOR_SPACE_FILE
-    if weight is None:
-        weight = PRIOR_WEIGHT_FILE if config.prior_weight is None else config.prior_weight
+    weight, space = config.prior_used()
     if reference is None:
         reference = read_model(path, "prior file")
 

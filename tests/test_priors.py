@@ -1,12 +1,12 @@
 """Shape priors: exact Gram matrices, affine projectors, the prior energy, and a phantom with a gap."""
 
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from conftest import central_difference_gradient, perturbed_init
 
+from segsnake.config import SegmentConfig
 from segsnake.errors import InputError
 from segsnake.priors import (
     GRAM_ORDER,
@@ -270,7 +270,7 @@ def _config(**kw):
     base = dict(prior=None, prior_weight=1.0, prior_space="affine", prior_modes=0, shape="sphere",
                 m1=None, m2=None)
     base.update(kw)
-    return SimpleNamespace(**base)
+    return SegmentConfig(**base)
 
 
 def test_segment_prior_accepts_saved_snakes_and_refuses_mismatches(tmp_path):

@@ -428,8 +428,7 @@ def test_a_prior_from_a_grid_of_the_other_handedness_meets_its_start(ball, tmp_p
     coordinates, so the start taken from the same file lies in the prior's shape space (energy
     0); read as stored, its surface runs the other way round and the prior pulls the start off
     its own shape."""
-    from types import SimpleNamespace
-
+    from segsnake.config import SegmentConfig
     from segsnake.runner import _prior_energy
     from segsnake.saved_snake import image_from_world, read_model, read_prior
 
@@ -445,9 +444,9 @@ def test_a_prior_from_a_grid_of_the_other_handedness_meets_its_start(ball, tmp_p
     assert rc == 0, err
     affine, spacing = nib.load(image).affine, ph.spacing
     start = image_from_world(load_snake(str(tmp_path / "fit.json")), affine, spacing)
-    config = SimpleNamespace(prior=str(tmp_path / "fit.json"), prior_weight=1.0,
-                             prior_space="similarity", prior_modes=0, shape="sphere", m1=None,
-                             m2=None)
+    config = SegmentConfig(prior=str(tmp_path / "fit.json"), prior_weight=1.0,
+                           prior_space="similarity", prior_modes=0, shape="sphere", m1=None,
+                           m2=None)
     placed = _prior_energy(config, read_prior(config.prior, affine, spacing))(start)
     stored = _prior_energy(config, read_model(config.prior))(start)
     # (measured: 1e-26 against 433)

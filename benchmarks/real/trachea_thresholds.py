@@ -26,9 +26,7 @@ sys.path[:0] = [os.path.dirname(__file__), os.path.dirname(os.path.dirname(__fil
 import cases  # noqa: E402  (benchmarks/real, with benchmarks/ on the path as it expects)
 from fetch import cache_dir  # noqa: E402
 
-
-def dice(a: np.ndarray, b: np.ndarray) -> float:
-    return 2.0 * float((a & b).sum()) / float(a.sum() + b.sum())
+from segsnake.metrics import dice  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,10 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     print("| run | " + " | ".join(f"< {hu:g} HU" for hu in refs) + " | volume / reference's |")
     print("|---" * (len(refs) + 2) + "|")
     for path in sorted(glob.glob(os.path.join(args.keep, "**", "mask.nii.gz"), recursive=True)):
-        seg = nib.load(path).get_fdata() > 0
-        run = os.path.relpath(os.path.dirname(path), args.keep)
         if "lung2-trachea" not in os.path.abspath(path).split(os.sep):
             continue  # (a whole --keep folder holds the other cases' masks too)
+        seg = nib.load(path).get_fdata() > 0
+        run = os.path.relpath(os.path.dirname(path), args.keep)
         ratios = " / ".join(f"{seg.sum() / refs[hu].sum():.3f}" for hu in refs)
         print(f"| {run} | " + " | ".join(f"{dice(seg, m):.3f}" for m in refs.values())
               + f" | {ratios} |")
