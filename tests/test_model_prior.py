@@ -127,8 +127,7 @@ def test_build_prior_picks_and_refuses():
 
 
 def test_segment_prior_options_pick_the_prior_and_refuse_contradictions(tmp_path):
-    from types import SimpleNamespace
-
+    from segsnake.config import SegmentConfig
     from segsnake.errors import InputError
     from segsnake.runner import _prior_energy
 
@@ -141,7 +140,7 @@ def test_segment_prior_options_pick_the_prior_and_refuse_contradictions(tmp_path
         base = dict(prior=str(path), prior_weight=1.0, prior_space="affine", prior_modes=0,
                     shape="sphere", m1=None, m2=None)
         base.update(kw)
-        return SimpleNamespace(**base)
+        return SegmentConfig(**base)
 
     snake = SM.mean
     assert isinstance(_prior_energy(config(prior_modes=3))(snake), ModePrior)

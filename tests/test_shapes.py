@@ -4,12 +4,12 @@ import json
 import os
 import subprocess
 import sys
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from segsnake.cli import main
+from segsnake.config import SegmentConfig
 from segsnake.errors import OutputError
 from segsnake.priors import AffinePrior, inner_product, l2_norm, projector, stack, unstack
 from segsnake.shapes import (
@@ -238,8 +238,8 @@ def test_shape_model_command_and_its_use_as_a_prior(tmp_path, capsys):
     # segment --prior MODEL.json: the reference's affine images cost nothing, others do.
     from segsnake.runner import _prior_energy
 
-    config = SimpleNamespace(prior=str(out), prior_weight=1.0, prior_space="affine", prior_modes=0,
-                             shape="sphere", m1=8, m2=7)
+    config = SegmentConfig(prior=str(out), prior_weight=1.0, prior_space="affine", prior_modes=0,
+                           shape="sphere", m1=8, m2=7)
     make = _prior_energy(config)
     energy = make(sm.reference)
     assert isinstance(energy, AffinePrior)
