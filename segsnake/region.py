@@ -78,6 +78,11 @@ class RegionParams:
     #: ... and averaged along the surface over this width (mm): the outside changes along a
     #: structure (white matter on one side, CSF on the other), not within a few mm.
     outside_smooth_mm: float = 5.0
+    #: The two classes' density counts a voxel whose intensity lies within this many spreads
+    #: (the click's ``sigma``) of either class mean as wholly that class, and ramps linearly in
+    #: the intensity between (:func:`two_class_density`, which says why; dimensionless; 0: the
+    #: ramp spans the whole step; swept 0-2 in docs/benchmarks.md, session 38).
+    pure_spreads: float = 1.0
     #: Two-class stages, each reading the outside afresh beyond the previous one's surface (a
     #: surface inside the step reads part of the object as outside, which pulls it inwards).
     two_class_rounds: int = 3
@@ -585,13 +590,25 @@ def _weighted_mean(total: NDArray, weight: NDArray, default) -> NDArray:
     return total
 
 
-def two_class_density(image: NDArray, model: IntensityModel, outside_mean: NDArray) -> NDArray:
+#: The narrowest ramp of :func:`two_class_density`, in spreads: where the two means lie within
+#: ``2 pure_spreads`` spreads of each other the pure bands would meet, and the density becomes
+#: a steep but continuous step across this width (no division by zero). It matters little:
+#: there :func:`blend` weights the click's band by 0.45 or more (with ``pure_spreads`` = 1).
+RAMP_FLOOR = 0.1
+
+
+def two_class_density(image: NDArray, model: IntensityModel, outside_mean: NDArray,
+                      pure_spreads: float = RegionParams.pure_spreads) -> NDArray:
     """The fraction of a voxel outside the object, as the inside's mean ``mu`` and the local
-    outside's ``mu_out`` say, mapped onto [-1, 1]:
-    ``clip(((I - mu)^2 - (I - mu_out)^2) / (mu - mu_out)^2, -1, 1)`` (float32): -1 at ``mu``, +1
-    at ``mu_out``, zero at their midpoint, which on a step blurred symmetrically is the step, and
-    linear in ``I`` between them (where ``|mu - mu_out|`` is below one spread ``sigma``, the
-    denominator is ``sigma^2``: :func:`blend` then reads the click's band there instead).
+    outside's ``mu_out`` say, mapped onto [-1, 1] (float32): -1 at ``mu``, +1 at ``mu_out``,
+    zero at their midpoint, which on a step blurred symmetrically is the step, and between them
+    ``(2 I - mu - mu_out) / r`` with the step's sign, a ramp linear in ``I`` across
+    ``r = |mu - mu_out| - 2 pure_spreads sigma``: within ``pure_spreads`` spreads of either mean
+    a voxel is wholly that class (:attr:`RegionParams.pure_spreads`). Where the means lie within
+    ``2 pure_spreads + RAMP_FLOOR`` spreads of each other the ramp is held at
+    :data:`RAMP_FLOOR` spreads wide, and where they lie within one spread ``|mu - mu_out|`` is
+    replaced by ``sigma`` in the denominator (the ramp then ``RAMP_FLOOR sigma^2 / |mu - mu_out|``
+    wide): :func:`blend` reads the click's band by 0.45 or more there, wholly within one spread.
 
     Linear because a voxel's intensity is linear in the share of it the object fills, whatever
     the scanner's blur and slice profile: a voxel the boundary crosses counts in proportion to
@@ -599,7 +616,9 @@ def two_class_density(image: NDArray, model: IntensityModel, outside_mean: NDArr
     the samples (docs/design.md, "Stage 2, two classes"). A density that saturates within the step
     (``tanh`` of the log-likelihood ratio, before session 37) counts such a voxel as wholly
     inside or outside, and the surface comes to rest half way between the last sample inside and
-    the first outside: across 2.5 mm slices, a 6 mm vessel 5-8 % wide.
+    the first outside: across 2.5 mm slices, a 6 mm vessel 5-8 % wide. Flat within a spread of
+    each mean (session 38) because a deviation that small is the class's own noise or texture
+    (the cerebellum's folia), not a share of the other class.
 
     ``image`` is the image as acquired, not smoothed: the density is odd about the midpoint and
     linear in ``I`` near it, so under noise symmetric about the signal its expectation is still
@@ -609,16 +628,22 @@ def two_class_density(image: NDArray, model: IntensityModel, outside_mean: NDArr
     (0.36 mm on a 3 mm ball at ``s`` = 1 mm, docs/design.md)."""
     out = _output(image, None)
     for i in range(image.shape[0]):  # plane by plane: no float64 copy of the volume
-        out[i] = _two_class_plane(image[i], outside_mean[i], model)
+        out[i] = _two_class_plane(image[i], outside_mean[i], model, pure_spreads)
     return out
 
 
-def _two_class_plane(plane: NDArray, outside_mean: NDArray, model: IntensityModel) -> NDArray:
-    """:func:`two_class_density` of one plane."""
+def _two_class_plane(plane: NDArray, outside_mean: NDArray, model: IntensityModel,
+                     pure_spreads: float) -> NDArray:
+    """:func:`two_class_density` of one plane: ``(a^2 - b^2) / (|step| ramp)`` is
+    ``(2 I - mu - mu_out) / ramp`` with the sign of ``step``. (``max(|step|, sigma)`` only keeps
+    ``0 / 0`` away where the local outside equals the inside: :func:`blend` gives the two
+    classes no weight within a spread.)"""
     a = plane - np.float32(model.mu)
     b = plane - outside_mean
-    step = outside_mean - np.float32(model.mu)
-    share = (a * a - b * b) / np.maximum(step * step, np.float32(model.sigma ** 2))
+    sigma = np.float32(model.sigma)
+    step = np.abs(outside_mean - np.float32(model.mu))
+    ramp = np.maximum(step - np.float32(2 * pure_spreads) * sigma, np.float32(RAMP_FLOOR) * sigma)
+    share = (a * a - b * b) / (np.maximum(step, sigma) * ramp)
     return np.clip(share, -1, 1, out=share)
 
 
@@ -638,7 +663,8 @@ def blend(two_class: NDArray, click: NDArray, outside_mean: NDArray,
 
 
 def two_class_blend(image: NDArray, image_s: NDArray, model: IntensityModel,
-                    outside_mean: NDArray, out: NDArray | None = None) -> NDArray:
+                    outside_mean: NDArray, out: NDArray | None = None,
+                    pure_spreads: float = RegionParams.pure_spreads) -> NDArray:
     """:func:`blend` of :func:`two_class_density` (of ``image``, as acquired) and
     :func:`region_density` (of ``image_s``, smoothed: its ``z^2`` is not linear in the
     intensity, and noise would raise it everywhere), plane by plane (float32; into ``out`` if
@@ -648,7 +674,7 @@ def two_class_blend(image: NDArray, image_s: NDArray, model: IntensityModel,
         raise ValueError(f"image has shape {image.shape}, the smoothed image {image_s.shape}")
     out = _output(image_s, out)
     for i in range(image_s.shape[0]):
-        out[i] = blend(_two_class_plane(image[i], outside_mean[i], model),
+        out[i] = blend(_two_class_plane(image[i], outside_mean[i], model, pure_spreads),
                        _click_plane(image_s[i], model), outside_mean[i], model)
     return out
 

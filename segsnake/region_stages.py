@@ -337,7 +337,7 @@ def segment_region(image, sp, config, model, progress, extra_energy, init_s,
                 del shell, distance
             sub = image_s[w_win.slices]
             mu_out = rg.local_outside_mean(sub, read, sp, p.outside_smooth_mm)
-            rg.two_class_blend(image[w_win.slices], sub, intensity, mu_out, out)
+            rg.two_class_blend(image[w_win.slices], sub, intensity, mu_out, out, p.pure_spreads)
             del mu_out
             if p.edge_length_mm > 0:
                 out += rg.edge_density(image[w_win.slices], sp, polarity, contrast,

@@ -241,21 +241,22 @@ def _from_click(name: str, start=lambda case: case["init"]):
 @pytest.mark.real
 @pytest.mark.slow
 def test_a_finer_grid_that_leaks_while_it_is_polished_is_refused():
-    """The lung tumour from the benchmark's first perturbed click: its 13 x 13 grid, stopped
+    """The lung tumour from the benchmark's fourth perturbed click: its 13 x 13 grid, stopped
     at the interim tolerance, refines the surface, and goes on leaking while it is polished.
     The test is asked again of the polished surface, which it refuses: the result is the last
-    round's surface (Dice 0.921; docs/benchmarks.md, sessions 20, 33 and 37: the third
-    perturbed click did this until session 33, the second until session 37's density)."""
+    round's surface (Dice 0.921; docs/benchmarks.md, sessions 20, 33, 37 and 38: the third
+    perturbed click did this until session 33, the second until session 37's density, the
+    first until session 38's)."""
     from bench_real import clicks
 
     from segsnake.metrics import dice
     from segsnake.region import RegionParams
 
     res, truth = _from_click("lung2-tumour",
-                             lambda case: dict(clicks(case, 1))["perturbed 1"])
+                             lambda case: dict(clicks(case, 4))["perturbed 4"])
     grid = next(h for h in res.history if h["stage"] == "grid 13x13")
     polished = next(h for h in res.history if h["stage"] == "polish: grid 13x13")
-    # (measured: the grid departs by 0, the polished surface by 0.193)
+    # (measured: the grid departs by 0, the polished surface by 0.235)
     assert grid["kept"] and grid["departure"] <= RegionParams().finer_departure
     assert not polished["kept"] and polished["departure"] > 2 * RegionParams().finer_departure
     assert res.model.m1 == 9 and dice(res.mask, truth) >= 0.9
@@ -280,10 +281,10 @@ def test_the_overlapping_caudate_is_warned_about_and_the_tumour_is_not():
 @pytest.mark.real
 @pytest.mark.slow
 def test_the_thalamus_that_ran_down_the_brainstem_is_warned_about_and_the_tumour_is_not():
-    """From the benchmark's clicks: the right thalamus runs on down the brainstem (Dice 0.213)
-    and leaves its click at 0.47 of the result's greatest depth; the lung tumour's (0.926) is at
-    0.98 (docs/benchmarks.md, sessions 21 and 37; ``RegionParams.min_click_depth`` 0.5; before
-    session 37's density the thalamus ran further, to 0.28)."""
+    """From the benchmark's clicks: the right thalamus runs on down the brainstem (Dice 0.160)
+    and leaves its click at 0.38 of the result's greatest depth; the lung tumour's (0.925) is at
+    0.97 (docs/benchmarks.md, sessions 21, 37 and 38; ``RegionParams.min_click_depth`` 0.5; the
+    thalamus's depth was 0.28 before session 37's density, 0.47 with it)."""
     from segsnake.metrics import dice
     from segsnake.region import RegionParams
     from segsnake.runner import result_warnings
@@ -293,15 +294,15 @@ def test_the_thalamus_that_ran_down_the_brainstem_is_warned_about_and_the_tumour
         depth = res.settings["click_depth"]
         warned = any("grew away" in w for w in result_warnings(res))
         assert (dice(res.mask, truth) >= 0.9) == found and warned != found
-        assert (depth > 0.8) if found else (0.4 < depth < RegionParams().min_click_depth)
+        assert (depth > 0.8) if found else (0.25 < depth < RegionParams().min_click_depth)
 
 
 @pytest.mark.real
 @pytest.mark.slow
 def test_the_atlas_names_the_thalamus_under_the_click_and_finds_it(tmp_path, capsys):
     """``segment --atlas`` from the benchmark's click on the right thalamus: the label under the
-    click is aseg's right thalamus, and the result scores 0.806 (0.213 from the click alone;
-    docs/benchmarks.md, sessions 36 and 37). Needs ``benchmarks/atlas_start.py``'s atlas folder."""
+    click is aseg's right thalamus, and the result scores 0.801 (0.160 from the click alone;
+    docs/benchmarks.md, sessions 36-38). Needs ``benchmarks/atlas_start.py``'s atlas folder."""
     from segsnake.cli import main
 
     case = _case("colin27-thalamus-r")
