@@ -32,6 +32,7 @@ class OptimizeResult:
 
     model: SplineSurface
     energy: float
+    #: Steps taken (an iteration whose line search found no admissible decrease is not one).
     iterations: int
     evaluations: int
     converged: bool
@@ -182,6 +183,9 @@ def minimize_energy(model: SplineSurface, energy: Energy, *, max_iter: int = 300
             found = _line_search(fun, x, f, d, slope, False, max_step_mm, displacement,
                                  admissible)
         if found is None:
+            # (an iteration that found no step took none: a restart from a surface at rest
+            # among refused shapes counts no iteration, as one from a stationary surface)
+            it -= 1
             converged, message = True, "no further admissible decrease"
             break
         x_new, f_new, g_new = found

@@ -128,6 +128,25 @@ def test_stationarity_is_the_first_order_decrease_and_a_restart_at_it_takes_no_s
     assert plain.iterations >= 5 and not np.array_equal(plain.model.params, res.model.params)
 
 
+def test_an_iteration_that_finds_no_admissible_step_is_not_counted():
+    # Every shape away from the start refused: the minimization ends where it started, after
+    # no step (a restart from a surface at rest among refused shapes reports 0 iterations,
+    # as one from a stationary surface does).
+    model = SphereModel.ellipsoid([0, 0, 0], [1.0, 1.2, 0.8], m1=6, m2=6)
+    energy = FluxTerm(model, _LevelBlob("blob", s=2.0), weight=-1.0)
+    start = model.params.copy()
+    res = minimize_energy(model, energy, tol=1e-5, stationary_tol=1e-9,
+                          admissible=lambda x: np.array_equal(x, start))
+    assert res.message == "no further admissible decrease"
+    assert res.iterations == 0 and np.array_equal(res.model.params, start)
+    # ... and one held within a small box ends at its face: every iteration counted took a step
+    # (the history holds the start and each accepted step's energy)
+    boxed = minimize_energy(model, energy, tol=0.0, step_tol_mm=0.0,
+                            admissible=lambda x: np.abs(x - start).max() <= 0.05)
+    assert boxed.message == "no further admissible decrease"
+    assert boxed.iterations >= 1 and boxed.iterations == len(boxed.history) - 1
+
+
 def test_axial_tension_is_the_distance_between_the_end_rings_centres():
     from segsnake.energy import AxialTension
 
