@@ -24,9 +24,13 @@ import numpy as np
 
 sys.path[:0] = [os.path.dirname(__file__), os.path.dirname(os.path.dirname(__file__))]
 import cases  # noqa: E402  (benchmarks/real, with benchmarks/ on the path as it expects)
-from fetch import cache_dir  # noqa: E402
+from fetch import load_cases  # noqa: E402
 
 from segsnake.metrics import dice  # noqa: E402
+
+
+#: The benchmark case whose kept masks are scored (bench_real.py keeps them under its name).
+CASE = "lung2-trachea"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,9 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("keep", help="a bench_real.py --keep directory")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[-950.0, -800.0, -600.0, -500.0])
     args = ap.parse_args(argv)
-    case_dir = os.path.join(cache_dir(), "cases")
-    ct = nib.load(os.path.join(case_dir, "lung2_ct.nii.gz")).get_fdata()
-    reference = nib.load(os.path.join(case_dir, "lung2_trachea.nii.gz")).get_fdata() > 0
+    case = next(c for c in load_cases() if c["name"] == CASE)  # (its files, as fetch.py built)
+    ct = nib.load(case["image"]).get_fdata()
+    reference = nib.load(case["truth"]).get_fdata() > 0
     on_slices = np.zeros(ct.shape[2], bool)
     on_slices[np.unique(np.nonzero(reference)[2])] = True
     refs = {}
@@ -49,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     print("| run | " + " | ".join(f"< {hu:g} HU" for hu in refs) + " | volume / reference's |")
     print("|---" * (len(refs) + 2) + "|")
     for path in sorted(glob.glob(os.path.join(args.keep, "**", "mask.nii.gz"), recursive=True)):
-        if "lung2-trachea" not in os.path.abspath(path).split(os.sep):
+        if CASE not in os.path.abspath(path).split(os.sep):
             continue  # (a whole --keep folder holds the other cases' masks too)
         seg = nib.load(path).get_fdata() > 0
         run = os.path.relpath(os.path.dirname(path), args.keep)
